@@ -1,0 +1,190 @@
+"""Command line: ``zoffload demo | robot | edge | router``, ``zoffload-robot``, ``zoffload-edge``.
+
+``main()`` only parses arguments and calls the ``run(settings)`` functions, which are also the
+Python API. Every program takes the Zenoh session flags of the zenoh examples
+(``-m -e -l -c --no-multicast-scouting --cfg``) plus ``--no-shm``; program settings come from
+``--settings FILE`` (YAML), then ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables, then flags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from zoffload import __version__
+from zoffload.config import ConfigError, EdgeSettings, RobotSettings, load_settings
+from zoffload.errors import ExitCode, ZenohSessionError
+from zoffload.lifecycle import StopSignal, setup_logging
+from zoffload.sources.base import ScanSourceError
+
+log = logging.getLogger("zoffload")
+
+
+def add_session_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh session")
+    g.add_argument("-m", "--mode", choices=["peer", "client", "router"], help="session mode")
+    g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help="endpoint to connect to")
+    g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on")
+    g.add_argument("-c", "--config", dest="zenoh_config", metavar="FILE", help="zenoh config file")
+    g.add_argument("--no-multicast-scouting", action="store_true", help="disable multicast scouting")
+    g.add_argument("--no-shm", action="store_true",
+                   help="disable shared memory (needed for traffic to cross a shaped link)")
+    g.add_argument("--cfg", action="append", metavar="KEY:VALUE",
+                   help="any zenoh config key, VALUE in JSON5 (repeatable)")
+
+
+def session_flags(a: argparse.Namespace) -> dict[str, Any]:
+    z: dict[str, Any] = {"mode": a.mode, "connect": a.connect, "listen": a.listen,
+                         "config_file": a.zenoh_config, "cfg": a.cfg}
+    if a.no_multicast_scouting:
+        z["multicast_scouting"] = False
+    if a.no_shm:
+        z["shared_memory"] = False
+    return {k: v for k, v in z.items() if v is not None}
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--settings", metavar="FILE", help="YAML settings file")
+    p.add_argument("--namespace", help="key namespace (default zoffload)")
+    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env ZOFFLOAD_LOG)")
+    add_session_arguments(p)
+
+
+def robot_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="zoffload-robot", description="The robot daemon.")
+    _common(p)
+    p.add_argument("--robot-id", help="this robot's id (default robot1)")
+    p.add_argument("--scans", help="'sim' or a folder of .bin/.pcd/.ply scans")
+    p.add_argument("--replay", choices=["once", "loop", "pingpong"], help="replay mode")
+    p.add_argument("--rate", type=float, dest="rate_hz", help="sensor rate in Hz (default: source's)")
+    p.add_argument("--max-scans", type=int, help="stop after this many scans")
+    p.add_argument("--voxel", type=float, help="fixed voxel size in m; 0 sends raw scans")
+    p.add_argument("--ack-timeout", type=float, help="seconds before an unanswered scan is lost")
+    p.add_argument("--wait-edge", type=float, help="seconds to wait for an edge at start")
+    p.add_argument("--out", dest="out_dir", help="results folder")
+    return p
+
+
+def edge_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="zoffload-edge", description="The edge daemon.")
+    _common(p)
+    p.add_argument("--edge-id", help="this edge's id (default edge1)")
+    p.add_argument("--map-dir", help="export maps and trajectories here on shutdown")
+    p.add_argument("--map-format", choices=["ply", "pcd"])
+    return p
+
+
+def _flags(a: argparse.Namespace, names: Sequence[str]) -> dict[str, Any]:
+    out = {n: getattr(a, n) for n in names if getattr(a, n, None) is not None}
+    z = session_flags(a)
+    if z:
+        out["zenoh"] = z
+    return out
+
+
+def robot_settings(a: argparse.Namespace) -> RobotSettings:
+    names = ["namespace", "robot_id", "scans", "replay", "rate_hz", "max_scans", "voxel",
+             "ack_timeout", "wait_edge", "out_dir"]
+    return load_settings(RobotSettings, a.settings, _flags(a, names), "ZOFFLOAD_ROBOT__")
+
+
+def edge_settings(a: argparse.Namespace) -> EdgeSettings:
+    return load_settings(EdgeSettings, a.settings, _flags(a, ["namespace", "edge_id", "map_dir",
+                                                              "map_format"]), "ZOFFLOAD_EDGE__")
+
+
+def _run_robot(a: argparse.Namespace) -> int:
+    from zoffload.robot.daemon import run
+
+    run(robot_settings(a), StopSignal().install())
+    return ExitCode.OK
+
+
+def _run_edge(a: argparse.Namespace) -> int:
+    from zoffload.edge.daemon import run
+
+    run(edge_settings(a), StopSignal().install())
+    return ExitCode.OK
+
+
+def _run_router(a: argparse.Namespace) -> int:
+    from zoffload.router import run
+
+    z = session_flags(a)
+    z["mode"] = "router"
+    run(load_settings(RobotSettings, None, {"zenoh": z}).zenoh, StopSignal().install())
+    return ExitCode.OK
+
+
+def _run_demo(a: argparse.Namespace) -> int:
+    from zoffload.demo import DemoOptions, run
+
+    return run(DemoOptions(duration=a.duration, scans=a.scans, out=a.out, voxel=a.voxel,
+                           replay=a.replay))
+
+
+def _guard(fn: Callable[[argparse.Namespace], int], a: argparse.Namespace) -> int:
+    """Run a command, turning the errors a user can cause into a message and a named exit code."""
+    setup_logging(getattr(a, "log_level", None))
+    try:
+        return int(fn(a))
+    except ConfigError as exc:
+        log.error("configuration error: %s", exc)
+        return ExitCode.CONFIG
+    except ScanSourceError as exc:
+        log.error("scan data error: %s", exc)
+        return ExitCode.DATA
+    except ZenohSessionError as exc:
+        log.error("%s", exc)
+        return ExitCode.ZENOH
+    except KeyboardInterrupt:
+        return ExitCode.INTERRUPTED
+    except Exception:
+        log.exception("unexpected error")
+        return ExitCode.FAILURE
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="zoffload", description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--version", action="version", version=f"zoffload {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("demo", help="robot + edge on localhost with the simulator, ~30 s")
+    d.add_argument("--duration", type=float, default=30.0, help="seconds of sensor data (default 30)")
+    d.add_argument("--scans", default="sim", help="'sim' (default) or a folder of real scans")
+    d.add_argument("--replay", choices=["once", "loop", "pingpong"], default=None,
+                   help="replay mode (default: once for sim, pingpong for a folder)")
+    d.add_argument("--voxel", type=float, default=0.05, help="robot voxel size in m (default 0.05)")
+    d.add_argument("--out", default=None, help="results folder (default results/demo-<time>)")
+    d.add_argument("--log-level", default=None)
+    d.set_defaults(func=_run_demo)
+    r = sub.add_parser("robot", help="the robot daemon (same as zoffload-robot)")
+    robot_parser(r).set_defaults(func=_run_robot)
+    e = sub.add_parser("edge", help="the edge daemon (same as zoffload-edge)")
+    edge_parser(e).set_defaults(func=_run_edge)
+    rt = sub.add_parser("router", help="a Zenoh router (zenoh-python in router mode)")
+    add_session_arguments(rt)
+    rt.add_argument("--log-level", default=None)
+    rt.set_defaults(func=_run_router)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return _guard(args.func, args)
+
+
+def robot_main(argv: Sequence[str] | None = None) -> int:
+    args = robot_parser().parse_args(argv)
+    return _guard(_run_robot, args)
+
+
+def edge_main(argv: Sequence[str] | None = None) -> int:
+    args = edge_parser().parse_args(argv)
+    return _guard(_run_edge, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

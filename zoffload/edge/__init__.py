@@ -1,0 +1,1 @@
+"""The edge daemon: a KISS-ICP mapper per robot, acks, map queryable, liveliness."""

@@ -1,0 +1,1 @@
+"""Metrics and plots: trajectory error, receive-time statistics, result figures."""

@@ -1,0 +1,98 @@
+"""Every Zenoh key expression zoffload uses, built in one place.
+
+Layout (``<ns>`` defaults to ``zoffload``; ids are single chunks, no ``/``, ``*``, ``$``, ``#``, ``?``):
+
+====================================  ==========  =====================================================
+key                                   primitive   payload
+====================================  ==========  =====================================================
+``<ns>/data/<robot>/scan``            pub/sub     ``wire.Scan``  robot → edge, congestion control DROP
+``<ns>/data/<robot>/scan_ack``        pub/sub     ``wire.ScanAck`` edge → robot, one per scan
+``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
+``<ns>/ctrl/<robot>/ping``            queryable   ``wire.Pong`` answered by the edge (liveness RTT)
+``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz
+``<ns>/status/edge/<edge>``           pub/sub     ``wire.Status`` edge counters, 1 Hz
+``<ns>/alive/edge/<edge>``            liveliness  token held while the edge daemon runs
+``<ns>/alive/robot/<robot>``          liveliness  token held while a robot daemon runs
+====================================  ==========  =====================================================
+
+Data, control, status and liveliness live under separate prefixes so a router ACL or a recorder
+can select one class of traffic with a single wildcard.
+"""
+
+from __future__ import annotations
+
+import re
+
+DEFAULT_NAMESPACE = "zoffload"
+_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def check_id(value: str, what: str = "id") -> str:
+    """Return ``value`` if it is a valid single key chunk, else raise ``ValueError``."""
+    if not _ID.match(value):
+        raise ValueError(
+            f"invalid {what} {value!r}: use letters, digits, '_', '-' or '.' (it becomes one "
+            "Zenoh key chunk)"
+        )
+    return value
+
+
+class Keys:
+    """Key expressions of one namespace."""
+
+    def __init__(self, namespace: str = DEFAULT_NAMESPACE) -> None:
+        self.ns = check_id(namespace, "namespace")
+
+    # Data streams
+    def scan(self, robot: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/scan"
+
+    def scan_ack(self, robot: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/scan_ack"
+
+    def all_scans(self) -> str:
+        return f"{self.ns}/data/*/scan"
+
+    # Control (queryables)
+    def map(self, robot: str) -> str:
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/map"
+
+    def all_maps(self) -> str:
+        return f"{self.ns}/ctrl/*/map"
+
+    def ping(self, robot: str) -> str:
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/ping"
+
+    def all_pings(self) -> str:
+        return f"{self.ns}/ctrl/*/ping"
+
+    # Status
+    def robot_status(self, robot: str) -> str:
+        return f"{self.ns}/status/{check_id(robot, 'robot id')}"
+
+    def edge_status(self, edge: str) -> str:
+        return f"{self.ns}/status/edge/{check_id(edge, 'edge id')}"
+
+    # Liveliness
+    def edge_alive(self, edge: str) -> str:
+        return f"{self.ns}/alive/edge/{check_id(edge, 'edge id')}"
+
+    def any_edge_alive(self) -> str:
+        return f"{self.ns}/alive/edge/*"
+
+    def robot_alive(self, robot: str) -> str:
+        return f"{self.ns}/alive/robot/{check_id(robot, 'robot id')}"
+
+    def any_robot_alive(self) -> str:
+        return f"{self.ns}/alive/robot/*"
+
+    # Parsing
+    def robot_of(self, key: str) -> str | None:
+        """The robot id in a data or control key of this namespace, or None if it is not one."""
+        parts = str(key).split("/")
+        if len(parts) == 4 and parts[0] == self.ns and parts[1] in ("data", "ctrl"):
+            return parts[2] if _ID.match(parts[2]) else None
+        return None
+
+    def last_chunk(self, key: str) -> str:
+        return str(key).rsplit("/", 1)[-1]

@@ -1,0 +1,1 @@
+"""The robot daemon: sensor replay, per-scan downsampling, offloading, counters."""

@@ -1,0 +1,84 @@
+"""A sensor thread that replays a scan source at its rate, like a real driver: it never waits for
+the consumer. Only the newest scan is kept; a scan overwritten before it was taken is counted."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+from zoffload.sources.base import ScanFrame, ScanSource, replay_order
+
+log = logging.getLogger("zoffload.robot.sensor")
+
+
+@dataclass(frozen=True)
+class Reading:
+    seq: int  # 0, 1, 2, ... over the whole replay
+    frame: ScanFrame
+    capture_stamp: float  # robot wall clock when the scan was complete
+
+
+class SensorThread:
+    def __init__(self, source: ScanSource, rate_hz: float, mode: str = "once",
+                 max_scans: int | None = None) -> None:
+        self.source = source
+        self.period = 1.0 / rate_hz
+        self.mode = mode
+        self.max_scans = max_scans
+        self.produced = 0
+        self.overwritten = 0
+        self.read_errors = 0
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._slot: Reading | None = None
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="sensor", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        start = time.monotonic()
+        try:
+            for k, index in enumerate(replay_order(len(self.source), self.mode)):
+                if self._stop.is_set() or (self.max_scans is not None and k >= self.max_scans):
+                    break
+                # A spinning sensor delivers scan k at start + (k + 1) * period, whoever listens
+                due = start + (k + 1) * self.period
+                frame = self.source.read(index)
+                delay = due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    break
+                reading = Reading(seq=k, frame=frame, capture_stamp=time.time())
+                with self._cond:
+                    if self._slot is not None:
+                        self.overwritten += 1
+                    self._slot = reading
+                    self.produced += 1
+                    self._cond.notify()
+        except Exception as exc:  # a source failing mid-run ends the replay, it is logged
+            self.read_errors += 1
+            log.error("scan source failed: %s", exc)
+        finally:
+            self.finished.set()
+            with self._cond:
+                self._cond.notify_all()
+
+    def take(self, timeout: float) -> Reading | None:
+        """The newest unread scan, waiting up to ``timeout``; None if none came."""
+        with self._cond:
+            if self._slot is None and not self.finished.is_set():
+                self._cond.wait(timeout)
+            reading, self._slot = self._slot, None
+            return reading
+
+    @property
+    def exhausted(self) -> bool:
+        with self._cond:
+            return self.finished.is_set() and self._slot is None

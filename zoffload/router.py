@@ -1,0 +1,23 @@
+"""A Zenoh router process built on zenoh-python, for machines without ``zenohd``.
+
+The docker deployment uses the official ``eclipse/zenoh`` router image; this is the same role for
+a bare-metal set-up or tests: a session in router mode that forwards between its peers/clients.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from zoffload.config import ZenohSettings, open_session
+from zoffload.lifecycle import StopSignal
+
+log = logging.getLogger("zoffload.router")
+
+
+def run(z: ZenohSettings, stop: StopSignal) -> None:
+    session = open_session(z)
+    log.info("router up, listening on %s", z.listen or "the default endpoint")
+    try:
+        stop.wait()
+    finally:
+        session.close()
