@@ -114,16 +114,18 @@ def warehouse(path_xy: np.ndarray | None = None, seed: int = 0, size: tuple[floa
     # Boxes, pallets and people scattered where the robot does not drive
     placed = 0
     while placed < 80:
-        x, y = float(rng.uniform(0.8, w - 0.8)), float(rng.uniform(0.8, d - 0.8))
-        if not _clear_of(path, x, y, 1.3):
-            continue
+        x, y = float(rng.uniform(1.5, w - 1.5)), float(rng.uniform(1.5, d - 1.5))
         kind = rng.choice(["box", "pallet", "person"], p=[0.5, 0.3, 0.2])
+        sx, sy = (1.2, 0.8) if kind == "pallet" else tuple(rng.uniform(0.4, 1.2, size=2))
+        # Centred footprint; keep its far corner 1 m from the path
+        if not _clear_of(path, x, y, 1.0 + 0.5 * float(np.hypot(sx, sy))):
+            continue
+        x0, y0, x1, y1 = x - sx / 2, y - sy / 2, x + sx / 2, y + sy / 2
         if kind == "box":
-            sx, sy, sz = rng.uniform(0.4, 1.2, size=3)
-            b.box("box", x, y, 0, x + sx, y + sy, sz)
+            b.box("box", x0, y0, 0, x1, y1, float(rng.uniform(0.4, 1.2)))
         elif kind == "pallet":
-            b.box("pallet", x, y, 0, x + 1.2, y + 0.8, 0.15)
-            b.box("box", x + 0.1, y + 0.1, 0.15, x + 1.1, y + 0.7, float(rng.uniform(0.6, 1.6)))
+            b.box("pallet", x0, y0, 0, x1, y1, 0.15)
+            b.box("box", x0 + 0.1, y0 + 0.1, 0.15, x1 - 0.1, y1 - 0.1, float(rng.uniform(0.6, 1.6)))
         else:
             b.cylinder(x, y, 0.25, 0.0, float(rng.uniform(1.55, 1.9)))
         placed += 1

@@ -1,0 +1,50 @@
+from __future__ import annotations
+
+import numpy as np
+
+from zoffload import wire
+from zoffload.robot.ledger import ScanLedger
+
+
+def ack(seq: int, stamp: float, status: str = "ok", t: float = 0.1) -> wire.ScanAck:
+    return wire.ScanAck(robot="r", seq=seq, send_stamp=stamp, status=status, interarrival=t,
+                        queue_time=0.001, proc_time=0.02, map_points=10 * seq, keypoints=5,
+                        sigma=0.3, pose=np.eye(4))
+
+
+def test_every_bucket_and_the_balance() -> None:
+    led = ScanLedger()
+    for seq in range(8):
+        led.produced()
+        if seq == 7:
+            led.drop_at_source(seq, "edge_absent")
+            continue
+        led.published(seq, send_stamp=100.0 + seq, record={"n_raw": 10})
+    assert led.balanced() and led.in_flight == 7
+    assert led.on_ack(ack(0, 100.0), recv_stamp=100.05) == "acked"
+    assert led.on_ack(ack(1, 101.0, "dropped"), 101.01) == "edge_dropped"
+    assert led.on_ack(ack(2, 102.0, "error"), 102.01) == "edge_error"
+    assert led.balanced()
+    # seq 3 and 4 time out; 3's ack then arrives late
+    assert led.expire(now=105.5, timeout=1.0) == 2
+    assert led.records[4]["status"] == "lost"
+    assert led.on_ack(ack(3, 103.0), 105.6) == "late"
+    assert led.on_ack(ack(0, 100.0), 105.7) == "duplicate"
+    assert led.on_ack(ack(99, 1.0), 105.7) == "unknown"
+    assert led.on_ack(ack(5, 999.0), 105.7) == "unknown"  # stamp does not match what was sent
+    led.finish()
+    b = led.balance()
+    assert b == {"produced": 8, "published": 7, "dropped_source": 1, "acked": 1, "edge_dropped": 1,
+                 "edge_error": 1, "lost": 3, "late": 1, "in_flight": 0}
+    assert led.balanced()
+
+
+def test_rtt_is_robot_clock_and_network_time_excludes_edge_time() -> None:
+    led = ScanLedger()
+    led.produced()
+    led.published(0, send_stamp=50.0, record={})
+    led.on_ack(ack(0, 50.0, t=0.12), recv_stamp=50.2)
+    rec = led.records[0]
+    assert abs(rec["rtt"] - 0.2) < 1e-9
+    assert abs(rec["network_time"] - (0.2 - 0.021)) < 1e-9
+    assert led.last_interarrival == 0.12

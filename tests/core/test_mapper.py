@@ -1,0 +1,49 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from zoffload.edge.mapper import RobotMapper, mapper_voxel_size
+from zoffload.eval.trajectory import trajectory_error
+from zoffload.sources.simulated import SimulatedSource
+from zoffload.voxel import VoxelSet, voxel_downsample
+
+pytest.importorskip("kiss_icp")
+
+
+def test_mapper_voxel_follows_sensor_and_robot_voxels() -> None:
+    assert mapper_voxel_size(100.0, 0.07) == 1.0  # KISS-ICP's own default
+    assert mapper_voxel_size(40.0, 0.07) == 0.4
+    assert mapper_voxel_size(20.0, 0.3) == 0.6  # never finer than twice the robot's voxel
+    assert mapper_voxel_size(20.0, 0.3, configured=0.25) == 0.25
+
+
+def test_kiss_icp_tracks_the_simulated_warehouse() -> None:
+    src = SimulatedSource()
+    m = RobotMapper(voxel_size=0.4, max_range=src.max_range)
+    gt = []
+    counts = []
+    for i in range(60):
+        f = src.read(i)
+        r = m.register(i, voxel_downsample(f.points, 0.05))
+        gt.append(f.gt_pose)
+        counts.append(r.map_points)
+        assert r.keypoints > 100 and np.isfinite(r.sigma)
+    seqs, poses = m.trajectory()
+    err = trajectory_error(seqs, poses, np.arange(60), np.array(gt))
+    assert err is not None and err.path_length > 4.0
+    assert err.ate_rmse < 0.3, err
+    assert counts[-1] > counts[0] and all(b >= a for a, b in zip(counts, counts[1:]))
+    assert len(m.map_cloud()) == m.map_points
+
+
+def test_voxel_set_counts_distinct_voxels_and_grows() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-20, 20, size=(50_000, 3))
+    vs = VoxelSet(0.5, capacity=8)  # forces several rehashes
+    new1 = vs.add(pts[:25_000])
+    new2 = vs.add(pts[25_000:])
+    assert new1 + new2 == len(vs) == len(voxel_downsample(pts, 0.5))
+    assert vs.add(pts) == 0  # nothing new
+    keys = np.floor(vs.points() / 0.5)
+    assert len(np.unique(keys, axis=0)) == len(vs)

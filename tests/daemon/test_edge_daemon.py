@@ -1,0 +1,118 @@
+"""The edge daemon in-process, driven through a real Zenoh session on a loopback port."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
+from zoffload import wire
+from zoffload.config import EdgeSettings, MapperSettings
+from zoffload.sources.simulated import SimulatedSource
+from zoffload.voxel import voxel_downsample
+
+pytest.importorskip("kiss_icp")
+SRC = SimulatedSource()
+
+
+def scan_msg(robot: str, seq: int, index: int | None = None, stamp: float | None = None) -> bytes:
+    f = SRC.read(seq if index is None else index)
+    pts = voxel_downsample(f.points, 0.05).astype(np.float32)
+    return wire.encode(wire.Scan(robot=robot, seq=seq, send_stamp=stamp or time.monotonic(),
+                                 capture_stamp=time.time(), voxel=0.05, voxel_max=0.07,
+                                 max_range=SRC.max_range, n_raw=len(f.points), points=pts))
+
+
+class Acks:
+    def __init__(self, session: Any, robot: str) -> None:
+        self.items: list[wire.ScanAck] = []
+        self.sub = session.declare_subscriber(KEYS.scan_ack(robot), self._on)
+
+    def _on(self, sample: Any) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.ScanAck)
+        assert isinstance(msg, wire.ScanAck)
+        self.items.append(msg)
+
+
+def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None:
+    settings = EdgeSettings(zenoh=listen_on(free_port), map_dir=str(tmp_path))
+    with running_edge(settings) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        acks = Acks(s, "r1")
+        pub = s.declare_publisher(KEYS.scan("r1"))
+        for seq in range(20):
+            pub.put(scan_msg("r1", seq))
+            wait_for(lambda: len(acks.items) > seq, what=f"ack {seq}")  # paced like a sensor
+        ok = [a for a in acks.items if a.status == "ok"]
+        assert [a.seq for a in ok] == list(range(20))
+        assert np.isnan(ok[0].interarrival) and all(a.interarrival > 0 for a in ok[1:])
+        assert all(a.proc_time > 0 and a.keypoints > 0 for a in ok)
+        assert ok[-1].map_points > ok[0].map_points > 0
+        np.testing.assert_allclose(ok[0].pose, np.eye(4), atol=1e-9)
+        assert ok[-1].pose[0, 3] > 0.2  # the robot moved forward along x
+
+        replies = list(s.get(KEYS.map("r1"), timeout=10))
+        m = wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.MapReply)
+        assert isinstance(m, wire.MapReply)
+        assert m.scans == 20 and list(m.seqs) == list(range(20)) and len(m.points) == ok[-1].map_points
+        unknown = list(s.get(KEYS.map("nobody"), timeout=5))
+        assert unknown[0].err is not None and b"no map" in unknown[0].err.payload.to_bytes()
+        assert edge.counters["registered"] == 20
+    assert (tmp_path / "r1_map.ply").stat().st_size > 1000
+    assert (tmp_path / "r1_trajectory.npz").exists()
+
+
+def test_malformed_messages_are_counted_and_the_edge_stays_up(free_port: int) -> None:
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        acks = Acks(s, "r1")
+        s.put(KEYS.scan("r1"), b"\x00garbage")
+        s.put(KEYS.scan("r1"), wire.encode(wire.Pong(edge="x", stamp=0.0)))  # wrong type
+        s.put(KEYS.scan("r2"), scan_msg("r1", 0))  # key and payload disagree
+        wait_for(lambda: edge.counters["malformed"] == 3, what="3 malformed counted")
+        # an empty scan is a registration error, acked as such
+        empty = wire.encode(wire.Scan(robot="r1", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
+                                      voxel_max=0.07, max_range=40.0, n_raw=0,
+                                      points=np.empty((0, 3), np.float32)))
+        s.put(KEYS.scan("r1"), empty)
+        wait_for(lambda: len(acks.items) == 1, what="error ack")
+        assert acks.items[0].status == "error" and "no points" in acks.items[0].detail
+        s.put(KEYS.scan("r1"), scan_msg("r1", 1))
+        wait_for(lambda: len(acks.items) == 2, what="a good scan still works")
+        assert acks.items[1].status == "ok"
+
+
+def test_several_robots_get_their_own_mapper(free_port: int) -> None:
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        a, b = Acks(s, "ra"), Acks(s, "rb")
+        for seq in range(6):
+            s.put(KEYS.scan("ra"), scan_msg("ra", seq))
+            s.put(KEYS.scan("rb"), scan_msg("rb", seq, index=300 + seq))  # elsewhere in the warehouse
+            wait_for(lambda: len(a.items) > seq and len(b.items) > seq, what="acks of both")
+        assert set(edge.robots) == {"ra", "rb"}
+        assert edge.robots["ra"].mapper is not edge.robots["rb"].mapper
+        assert all(x.robot == "ra" for x in a.items) and all(x.robot == "rb" for x in b.items)
+
+
+def test_overload_drops_oldest_and_says_so(free_port: int) -> None:
+    settings = EdgeSettings(zenoh=listen_on(free_port), mapper=MapperSettings(queue=1))
+    with running_edge(settings) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        acks = Acks(s, "r1")
+        burst = [scan_msg("r1", seq) for seq in range(30)]
+        # BLOCK: every scan must reach the edge; the test is about the edge's own queue
+        pub = s.declare_publisher(KEYS.scan("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for payload in burst:  # far faster than registration
+            pub.put(payload)
+        wait_for(lambda: edge.counters["received"] == 30, what="all 30 scans received")
+        wait_for(lambda: len(acks.items) == 30, timeout=30, what="an ack for every scan")
+        dropped = [x for x in acks.items if x.status == "dropped"]
+        assert dropped and all("overloaded" in x.detail for x in dropped)
+        assert edge.counters["dropped"] == len(dropped)
+        assert edge.counters["registered"] + len(dropped) == 30

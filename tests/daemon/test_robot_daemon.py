@@ -1,0 +1,86 @@
+"""The robot daemon in-process against a real edge daemon (own Zenoh sessions, loopback port)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers import connect_to, listen_on, running_edge
+from zoffload.config import EdgeSettings, RobotSettings
+from zoffload.robot.daemon import RobotDaemon
+from zoffload.sources.base import ScanFrame
+from zoffload.sources.simulated import SimulatedSource
+
+pytest.importorskip("kiss_icp")
+
+
+def run_robot(settings: RobotSettings, source: object | None = None) -> RobotDaemon:
+    robot = RobotDaemon(settings, source=source)  # type: ignore[arg-type]
+    robot.start()
+    try:
+        robot.run()
+        if settings.out_dir:
+            robot.write_results(Path(settings.out_dir))
+    finally:
+        robot.shutdown()
+    return robot
+
+
+def test_scans_are_acked_and_counters_balance(free_port: int, tmp_path: Path) -> None:
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=25, rate_hz=20,
+                                        out_dir=str(tmp_path)))
+    m = robot.metrics()
+    assert m["balanced"] and m["balance"]["produced"] == 25
+    assert m["balance"]["acked"] >= 24 and m["balance"]["in_flight"] == 0
+    s = m["scans"]
+    assert s["mean_points_sent"] < s["mean_points_raw"]  # 5 cm voxels really reduce
+    assert 0.02 < s["mean_T"] < 0.2 and s["mean_rtt_ms"] > 0
+    rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
+    assert len(rows) == 25 and all(float(r["voxel"]) == 0.05 for r in rows if r["status"] == "acked")
+    assert json.loads((tmp_path / "robot_metrics.json").read_text())["balanced"] is True
+    assert (tmp_path / "robot_config.yaml").exists()
+    poses = np.load(tmp_path / "robot_poses.npz")
+    assert len(poses["gt_seqs"]) == 25 and len(poses["acked_seqs"]) == m["balance"]["acked"]
+
+
+def test_without_an_edge_the_robot_keeps_running_and_counts(free_port: int) -> None:
+    robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=10, rate_hz=50,
+                                    wait_edge=0.2))
+    m = robot.metrics()
+    assert m["balanced"]
+    assert m["balance"]["produced"] == 10 and m["balance"]["published"] == 0
+    assert m["dropped_source"] == {"edge_absent": 10}
+
+
+class NaNSource:
+    """Real geometry (simulator) with the NaN rows a driver emits for beams without return."""
+
+    def __init__(self) -> None:
+        self.sim = SimulatedSource()
+        self.name, self.rate_hz, self.max_range = "nan-sim", 10.0, 40.0
+
+    def __len__(self) -> int:
+        return 6
+
+    def read(self, index: int) -> ScanFrame:
+        f = self.sim.read(index)
+        pts = np.vstack([f.points, np.full((100, 3), np.nan, np.float32)])
+        if index == 3:
+            pts = np.full((50, 3), np.nan, np.float32)  # a scan with no valid point at all
+        return ScanFrame(index=index, points=pts, gt_pose=f.gt_pose)
+
+
+def test_non_finite_points_are_dropped_and_counted(free_port: int) -> None:
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), rate_hz=20), NaNSource())
+    m = robot.metrics()
+    assert m["balanced"] and m["dropped_source"] == {"empty": 1}
+    recs = robot.ledger.records
+    assert recs[0]["n_nonfinite"] == 100 and recs[3]["n_nonfinite"] == 50
+    assert recs[3]["status"] == "source:empty"
+    assert m["balance"]["acked"] == 5

@@ -1,0 +1,59 @@
+"""Start zoffload's console scripts as real processes for system tests."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+
+
+def script(name: str) -> list[str]:
+    """The installed console script, or the module entry point when running from a checkout."""
+    path = BIN / name
+    if path.exists():
+        return [str(path)]
+    found = shutil.which(name)
+    if found:
+        return [found]
+    sub = {"zoffload-robot": "robot", "zoffload-edge": "edge"}.get(name)
+    return [sys.executable, "-m", "zoffload.cli"] + ([sub] if sub else [])
+
+
+def session_args(listen: int | None = None, connect: int | None = None) -> list[str]:
+    args = ["--no-multicast-scouting", "--no-shm"]
+    if listen is not None:
+        args += ["-l", f"tcp/127.0.0.1:{listen}"]
+    if connect is not None:
+        args += ["-e", f"tcp/127.0.0.1:{connect}"]
+    return args
+
+
+class Proc:
+    def __init__(self, args: list[str], log: Path) -> None:
+        self.log = log
+        self._f = open(log, "w")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.p = subprocess.Popen(args, stdout=self._f, stderr=subprocess.STDOUT, env=env)
+
+    def sigint(self, timeout: float = 30) -> int:
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGINT)
+        return self.wait(timeout)
+
+    def wait(self, timeout: float = 60) -> int:
+        try:
+            code = self.p.wait(timeout)
+        finally:
+            if self.p.poll() is None:
+                self.p.kill()
+                self.p.wait()
+            self._f.close()
+        return code
+
+    def text(self) -> str:
+        return self.log.read_text()  # the child writes to the file itself

@@ -1,0 +1,105 @@
+"""Localhost multi-process runs: zoffload-edge and zoffload-robot as separate processes, talking
+over a Zenoh TCP endpoint on a free loopback port, multicast scouting and shared memory off."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tests.helpers import KEYS, client, wait_token
+from tests.system.procs import Proc, script, session_args
+from zoffload import wire
+from zoffload.errors import ExitCode
+
+pytestmark = pytest.mark.system
+pytest.importorskip("kiss_icp")
+
+
+def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Path) -> None:
+    edge = Proc(script("zoffload-edge") + session_args(listen=free_port)
+                + ["--map-dir", str(tmp_path / "edge")], tmp_path / "edge.log")
+    try:
+        with client(free_port) as s:
+            wait_token(s, KEYS.edge_alive("edge1"))
+            robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
+                         + ["--max-scans", "40", "--out", str(tmp_path / "robot")],
+                         tmp_path / "robot.log")
+            wait_token(s, KEYS.robot_alive("robot1"))
+            assert robot.wait(120) == 0, robot.text()
+            reply = list(s.get(KEYS.map("robot1"), timeout=10))[0]
+            m = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
+            assert isinstance(m, wire.MapReply)
+    finally:
+        code = edge.sigint()
+    assert code == 0, edge.text()
+    metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+    assert metrics["balanced"] and metrics["balance"]["produced"] == 40
+    assert metrics["balance"]["acked"] >= 38
+    assert m.scans == metrics["balance"]["acked"]
+    poses = np.load(tmp_path / "robot" / "robot_poses.npz")
+    np.testing.assert_allclose(poses["acked_poses"][-1], m.poses[-1])  # acks carry the edge's poses
+    assert (tmp_path / "edge" / "robot1_map.ply").exists()
+    assert (tmp_path / "edge" / "edge_config.yaml").exists()
+
+
+def test_robot_survives_the_edge_dying_mid_run(free_port: int, tmp_path: Path) -> None:
+    edge = Proc(script("zoffload-edge") + session_args(listen=free_port), tmp_path / "edge.log")
+    acked = [0.0]
+
+    def on_status(sample: Any) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        acked[0] = msg.values.get("acked", 0.0)  # type: ignore[attr-defined]
+
+    with client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        s.declare_subscriber(KEYS.robot_status("robot1"), on_status)
+        robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
+                     + ["--max-scans", "80", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
+        deadline = time.monotonic() + 60
+        while acked[0] < 15 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert acked[0] >= 15, robot.text()
+        edge.p.kill()  # no goodbye: the liveliness token vanishes with the connection
+        edge.wait()
+    assert robot.wait(120) == 0, robot.text()
+    metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+    b = metrics["balance"]
+    assert metrics["balanced"] and b["produced"] == 80
+    assert b["acked"] >= 5
+    assert metrics["dropped_source"].get("edge_absent", 0) > 10
+    assert "edge edge1 gone" in robot.text()
+
+
+def test_bad_config_key_exits_with_config_code(tmp_path: Path) -> None:
+    f = tmp_path / "robot.yaml"
+    f.write_text("voxle: 0.05\n")
+    r = subprocess.run(script("zoffload-robot") + ["--settings", str(f)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == ExitCode.CONFIG
+    assert "voxle" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_missing_data_folder_exits_with_data_code(free_port: int, tmp_path: Path) -> None:
+    r = subprocess.run(script("zoffload-robot") + session_args(connect=free_port)
+                       + ["--scans", str(tmp_path / "nowhere")], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == ExitCode.DATA
+    assert "does not exist" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_port_in_use_exits_with_zenoh_code(tmp_path: Path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run(script("zoffload-edge") + session_args(listen=port), capture_output=True,
+                           text=True, timeout=60)
+    assert r.returncode == ExitCode.ZENOH, r.stderr
+    assert "cannot open the Zenoh session" in r.stderr
