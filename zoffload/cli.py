@@ -74,6 +74,8 @@ def edge_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentPa
     p.add_argument("--edge-id", help="this edge's id (default edge1)")
     p.add_argument("--map-dir", help="export maps and trajectories here on shutdown")
     p.add_argument("--map-format", choices=["ply", "pcd"])
+    p.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
+                   help="receive and ack scans without mapping them (link checks)")
     return p
 
 
@@ -92,8 +94,10 @@ def robot_settings(a: argparse.Namespace) -> RobotSettings:
 
 
 def edge_settings(a: argparse.Namespace) -> EdgeSettings:
-    return load_settings(EdgeSettings, a.settings, _flags(a, ["namespace", "edge_id", "map_dir",
-                                                              "map_format"]), "ZOFFLOAD_EDGE__")
+    flags = _flags(a, ["namespace", "edge_id", "map_dir", "map_format"])
+    if a.mapping is False:
+        flags["mapper"] = {"enabled": False}
+    return load_settings(EdgeSettings, a.settings, flags, "ZOFFLOAD_EDGE__")
 
 
 def _run_robot(a: argparse.Namespace) -> int:

@@ -49,6 +49,7 @@ class ZenohSettings(_Strict):
 class MapperSettings(_Strict):
     """KISS-ICP on the edge. ``voxel_size`` None = max(max_range / 100, 2 x robot's voxel_max)."""
 
+    enabled: bool = True  # False: receive and ack only (link checks, stream benchmarks)
     voxel_size: float | None = Field(default=None, gt=0)
     min_range: float = Field(default=0.0, ge=0)
     max_range: float | None = Field(default=None, gt=0)  # None: the sensor's, sent by the robot

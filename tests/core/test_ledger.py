@@ -8,7 +8,7 @@ from zoffload.robot.ledger import ScanLedger
 
 def ack(seq: int, stamp: float, status: str = "ok", t: float = 0.1) -> wire.ScanAck:
     return wire.ScanAck(robot="r", seq=seq, send_stamp=stamp, status=status, interarrival=t,
-                        queue_time=0.001, proc_time=0.02, map_points=10 * seq, keypoints=5,
+                        queue_time=0.001, proc_time=0.02, icp_time=0.015, map_points=10 * seq, keypoints=5,
                         sigma=0.3, pose=np.eye(4))
 
 

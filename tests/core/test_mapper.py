@@ -47,3 +47,17 @@ def test_voxel_set_counts_distinct_voxels_and_grows() -> None:
     assert vs.add(pts) == 0  # nothing new
     keys = np.floor(vs.points() / 0.5)
     assert len(np.unique(keys, axis=0)) == len(vs)
+
+
+def test_voxel_set_transforms_by_pose() -> None:
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-10, 10, size=(5000, 3))
+    c, sn = np.cos(0.7), np.sin(0.7)
+    pose = np.array([[c, -sn, 0, 3.0], [sn, c, 0, -1.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    a, b = VoxelSet(0.3), VoxelSet(0.3)
+    a.add(pts, pose)
+    b.add(pts @ pose[:3, :3].T + pose[:3, 3])
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a.points(), b.points(), atol=1e-9)
+    with pytest.raises(ValueError, match="4x4"):
+        a.add(pts, np.eye(3))

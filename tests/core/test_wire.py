@@ -27,7 +27,7 @@ def test_scan_round_trip_keeps_every_field_and_array() -> None:
 
 def test_ack_map_pong_status_round_trip() -> None:
     ack = wire.ScanAck(robot="r", seq=1, send_stamp=1.0, status="ok", interarrival=float("nan"),
-                       queue_time=0.001, proc_time=0.02, map_points=5, keypoints=3, sigma=0.4,
+                       queue_time=0.001, proc_time=0.02, icp_time=0.015, map_points=5, keypoints=3, sigma=0.4,
                        pose=np.eye(4))
     out = wire.decode(wire.encode(ack))
     assert isinstance(out, wire.ScanAck) and np.isnan(out.interarrival)

@@ -146,6 +146,10 @@ class EdgeDaemon:
 
     def _register(self, rs: RobotSession, item: _Queued) -> None:
         scan = item.scan
+        if not self.settings.mapper.enabled:
+            rs.counters["received_only"] += 1
+            self._ack(rs, item, status="ok", detail="mapping disabled", queue_time=0.0)
+            return
         try:
             if rs.mapper is None:
                 rs.mapper = self._make_mapper(scan)
@@ -181,6 +185,7 @@ class EdgeDaemon:
             robot=rs.robot, seq=item.scan.seq, send_stamp=item.scan.send_stamp, status=status,
             interarrival=item.interarrival, queue_time=queue_time,
             proc_time=reg.proc_time if reg else float("nan"),
+            icp_time=reg.icp_time if reg else float("nan"),
             map_points=reg.map_points if reg else (rs.mapper.map_points if rs.mapper else 0),
             keypoints=reg.keypoints if reg else 0, sigma=reg.sigma if reg else float("nan"),
             detail=detail, pose=reg.pose if reg else np.full((4, 4), np.nan),
