@@ -15,8 +15,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from zoffload import __version__
-from zoffload.config import ConfigError, EdgeSettings, RobotSettings, load_settings
-from zoffload.errors import ExitCode, ZenohSessionError
+from zoffload.config import EdgeSettings, RobotSettings, load_settings
+from zoffload.errors import ConfigError, ExitCode, ZenohSessionError
 from zoffload.lifecycle import StopSignal, setup_logging
 from zoffload.sources.base import ScanSourceError
 

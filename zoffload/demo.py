@@ -17,7 +17,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -34,7 +34,7 @@ class DemoOptions:
     scans: str = "sim"
     out: str | None = None
     voxel: float = 0.05
-    replay: str | None = None
+    replay: Literal["once", "loop", "pingpong"] | None = None
 
 
 class Spawned:

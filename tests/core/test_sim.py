@@ -50,7 +50,7 @@ def test_scene_leaves_the_path_clear() -> None:
     scene = warehouse(tr.xy, seed=0)
     labels = np.array(scene.labels)
     # No box footprint within 0.5 m of the path (walls excepted: the path keeps 2 m from them)
-    for lo, hi, lab in zip(scene.box_min, scene.box_max, labels):
+    for lo, hi, lab in zip(scene.box_min, scene.box_max, labels, strict=True):
         dx = np.maximum(0, np.maximum(lo[0] - tr.xy[:, 0], tr.xy[:, 0] - hi[0]))
         dy = np.maximum(0, np.maximum(lo[1] - tr.xy[:, 1], tr.xy[:, 1] - hi[1]))
         assert np.hypot(dx, dy).min() > 0.5, lab

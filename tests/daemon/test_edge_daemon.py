@@ -47,7 +47,7 @@ def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None
         pub = s.declare_publisher(KEYS.scan("r1"))
         for seq in range(20):
             pub.put(scan_msg("r1", seq))
-            wait_for(lambda: len(acks.items) > seq, what=f"ack {seq}")  # paced like a sensor
+            wait_for(lambda seq=seq: len(acks.items) > seq, what=f"ack {seq}")  # paced like a sensor
         ok = [a for a in acks.items if a.status == "ok"]
         assert [a.seq for a in ok] == list(range(20))
         assert np.isnan(ok[0].interarrival) and all(a.interarrival > 0 for a in ok[1:])
@@ -94,7 +94,7 @@ def test_several_robots_get_their_own_mapper(free_port: int) -> None:
         for seq in range(6):
             s.put(KEYS.scan("ra"), scan_msg("ra", seq))
             s.put(KEYS.scan("rb"), scan_msg("rb", seq, index=300 + seq))  # elsewhere in the warehouse
-            wait_for(lambda: len(a.items) > seq and len(b.items) > seq, what="acks of both")
+            wait_for(lambda seq=seq: len(a.items) > seq and len(b.items) > seq, what="acks of both")
         assert set(edge.robots) == {"ra", "rb"}
         assert edge.robots["ra"].mapper is not edge.robots["rb"].mapper
         assert all(x.robot == "ra" for x in a.items) and all(x.robot == "rb" for x in b.items)

@@ -103,3 +103,25 @@ def test_port_in_use_exits_with_zenoh_code(tmp_path: Path) -> None:
                            text=True, timeout=60)
     assert r.returncode == ExitCode.ZENOH, r.stderr
     assert "cannot open the Zenoh session" in r.stderr
+
+
+def test_router_topology_as_in_docker_compose(free_port: int, tmp_path: Path) -> None:
+    """The compose deployment's topology as local processes: a router, edge and robot as clients."""
+    router = Proc(script("zoffload") + ["router", "--no-multicast-scouting", "-l",
+                                        f"tcp/127.0.0.1:{free_port}"], tmp_path / "router.log")
+    client_args = ["-m", "client", "-e", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting",
+                   "--no-shm"]
+    edge = None
+    try:
+        with client(free_port) as s:  # waits for the router's port through the session open
+            edge = Proc(script("zoffload-edge") + client_args, tmp_path / "edge.log")
+            wait_token(s, KEYS.edge_alive("edge1"))
+            robot = Proc(script("zoffload-robot") + client_args
+                         + ["--max-scans", "20", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
+            assert robot.wait(120) == 0, robot.text()
+    finally:
+        if edge is not None:
+            assert edge.sigint() == 0, edge.text()
+        assert router.sigint() == 0, router.text()
+    metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+    assert metrics["balanced"] and metrics["balance"]["acked"] >= 19

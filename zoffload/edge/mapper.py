@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,7 @@ def mapper_voxel_size(max_range: float, robot_voxel_max: float, configured: floa
     return max(max_range / 100.0, 2.0 * robot_voxel_max)
 
 
-def load_kiss_icp():  # type: ignore[no-untyped-def]
+def load_kiss_icp() -> tuple[Any, Any]:
     try:
         from kiss_icp.config import KISSConfig
         from kiss_icp.kiss_icp import KissICP

@@ -13,6 +13,6 @@ def write_point_cloud(path: Path, points: np.ndarray) -> Path:
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise ImportError("map export needs open3d: pip install 'zoffload[edge]'") from exc
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    if not o3d.io.write_point_cloud(str(path), cloud):
+    if not o3d.io.write_point_cloud(path, cloud):
         raise OSError(f"open3d could not write {path}")
     return path

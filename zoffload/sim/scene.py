@@ -56,7 +56,9 @@ def _clear_of(path_xy: np.ndarray, x: float, y: float, margin: float) -> bool:
     return bool(np.min(np.hypot(path_xy[:, 0] - x, path_xy[:, 1] - y)) > margin)
 
 
-def warehouse(path_xy: np.ndarray | None = None, seed: int = 0, size: tuple[float, float] = (40.0, 24.0)) -> Scene:
+def warehouse(
+    path_xy: np.ndarray | None = None, seed: int = 0, size: tuple[float, float] = (40.0, 24.0)
+) -> Scene:
     """A 40 m x 24 m warehouse. Random clutter is kept 1.2 m away from ``path_xy`` (the robot's
     path, (K, 2)) so the robot never drives through an object."""
     rng = np.random.default_rng(seed)

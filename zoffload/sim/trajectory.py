@@ -43,7 +43,8 @@ class Trajectory:
         pose[:2, :2] = [[c, -sn], [sn, c]]
         # The sensor bobs on its mount: without it, a level LiDAR's floor rings land on the same
         # sensor-frame points every scan and pull ICP towards zero motion.
-        z = self.height + self.bounce * (0.6 * np.sin(2 * np.pi * 1.7 * t) + 0.4 * np.sin(2 * np.pi * 0.37 * t + 1.0))
+        wave = 0.6 * np.sin(2 * np.pi * 1.7 * t) + 0.4 * np.sin(2 * np.pi * 0.37 * t + 1.0)
+        z = self.height + self.bounce * wave
         pose[:3, 3] = [x, y, z]
         return pose
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from zoffload.sources.base import ScanFrame, ScanSourceError
 
 
-def _open3d():  # type: ignore[no-untyped-def]
+def _open3d() -> Any:
     try:
         import open3d as o3d
     except ImportError as exc:

@@ -15,7 +15,9 @@ class SimulatedSource:
     reading a scan twice gives the same points.
     """
 
-    def __init__(self, seed: int = 0, speed: float = 1.2, laps: float = 1.0, lidar: LidarModel = VLP16) -> None:
+    def __init__(
+        self, seed: int = 0, speed: float = 1.2, laps: float = 1.0, lidar: LidarModel = VLP16
+    ) -> None:
         self.trajectory = warehouse_loop(speed=speed)
         self.scene = warehouse(self.trajectory.xy, seed=seed)
         self.lidar = lidar
