@@ -130,6 +130,23 @@ def _run_demo(a: argparse.Namespace) -> int:
                            replay=a.replay))
 
 
+def _run_link(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from zoffload.link.run import run
+    from zoffload.link.trace import TraceError, load_trace
+
+    try:
+        trace = load_trace(a.trace, loop=a.loop)
+        host, port = a.target.rsplit(":", 1)
+        target = (host, int(port))
+    except (TraceError, ValueError) as exc:
+        raise ConfigError(str(exc)) from exc
+    run(trace, a.listen_port, target, StopSignal().install(),
+        report=Path(a.report) if a.report else None, seed=a.seed, queue_ms=a.queue_ms, quiet=a.quiet)
+    return ExitCode.OK
+
+
 def _guard(fn: Callable[[argparse.Namespace], int], a: argparse.Namespace) -> int:
     """Run a command, turning the errors a user can cause into a message and a named exit code."""
     setup_logging(getattr(a, "log_level", None))
@@ -168,6 +185,19 @@ def build_parser() -> argparse.ArgumentParser:
     robot_parser(r).set_defaults(func=_run_robot)
     e = sub.add_parser("edge", help="the edge daemon (same as zoffload-edge)")
     edge_parser(e).set_defaults(func=_run_edge)
+    lk = sub.add_parser("link", help="the link emulator: a shaping TCP proxy driven by a trace")
+    lk.add_argument("--trace", required=True,
+                    help="a shipped trace (ethernet, capped, wifi-locations, outage) or a CSV file")
+    lk.add_argument("--listen-port", type=int, required=True, help="port to listen on (127.0.0.1)")
+    lk.add_argument("--target", required=True, metavar="HOST:PORT", help="where to forward to")
+    lk.add_argument("--loop", action="store_true", help="repeat the trace")
+    lk.add_argument("--report", help="write delivered Mbps per second to this CSV at exit")
+    lk.add_argument("--seed", type=int, default=0, help="jitter random seed")
+    lk.add_argument("--queue-ms", type=float, default=100.0,
+                    help="emulated queue before backpressure, in ms of transmission (default 100)")
+    lk.add_argument("--quiet", action="store_true", help="no per-second lines")
+    lk.add_argument("--log-level", default=None)
+    lk.set_defaults(func=_run_link)
     rt = sub.add_parser("router", help="a Zenoh router (zenoh-python in router mode)")
     add_session_arguments(rt)
     rt.add_argument("--log-level", default=None)
