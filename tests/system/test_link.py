@@ -113,7 +113,7 @@ def round_trips(trace_text: str, tmp_path: Path, n: int = 30) -> list[float]:
     rtts = []
     with emulator(trace, port) as (proxy, _), socket.create_connection(("127.0.0.1", proxy)) as c:
         c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        for i in range(n):
+        for _ in range(n):
             t0 = time.perf_counter()
             c.sendall(struct.pack("<d", t0))
             got = b""

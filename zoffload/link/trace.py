@@ -97,7 +97,9 @@ def parse_trace(text: str, name: str = "trace", loop: bool = False) -> Trace:
     header_line, header = rows[0]
     header = [h.strip() for h in header]
     if tuple(header) != COLUMNS:
-        raise TraceError(f"{name}:{header_line}: header must be {', '.join(COLUMNS)}; got {', '.join(header)}")
+        raise TraceError(
+            f"{name}:{header_line}: header must be {', '.join(COLUMNS)}; got {', '.join(header)}"
+        )
     times: list[float] = []
     states: list[LinkState] = []
     for lineno, cells in rows[1:]:
