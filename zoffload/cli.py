@@ -127,7 +127,7 @@ def _run_demo(a: argparse.Namespace) -> int:
     from zoffload.demo import DemoOptions, run
 
     return run(DemoOptions(duration=a.duration, scans=a.scans, out=a.out, voxel=a.voxel,
-                           replay=a.replay))
+                           replay=a.replay, trace=a.trace))
 
 
 def _run_link(a: argparse.Namespace) -> int:
@@ -144,6 +144,31 @@ def _run_link(a: argparse.Namespace) -> int:
         raise ConfigError(str(exc)) from exc
     run(trace, a.listen_port, target, StopSignal().install(),
         report=Path(a.report) if a.report else None, seed=a.seed, queue_ms=a.queue_ms, quiet=a.quiet)
+    return ExitCode.OK
+
+
+def _run_experiment(a: argparse.Namespace) -> int:
+    from zoffload.experiment import ScanExperiment, run_scan_experiment, summary_line
+    from zoffload.link.trace import TraceError
+
+    try:
+        row = run_scan_experiment(ScanExperiment(
+            trace=a.trace, policy=a.policy, scans=a.scans, out=a.out, max_scans=a.max_scans,
+            replay=a.replay, rate_hz=a.rate, seed=a.seed))
+    except TraceError as exc:
+        raise ConfigError(str(exc)) from exc
+    print(summary_line(row))
+    return ExitCode.OK
+
+
+def _run_report(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from zoffload.eval.report import write_report
+
+    path = write_report([Path(d) for d in a.runs], Path(a.out) if a.out else None)
+    print(path.read_text())
+    print(f"report written to {path}")
     return ExitCode.OK
 
 
@@ -179,12 +204,34 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay mode (default: once for sim, pingpong for a folder)")
     d.add_argument("--voxel", type=float, default=0.05, help="robot voxel size in m (default 0.05)")
     d.add_argument("--out", default=None, help="results folder (default results/demo-<time>)")
+    d.add_argument("--trace", default="demo",
+                   help="link emulator trace between robot and edge (default: demo, good -> bad -> good)")
+    d.add_argument("--no-link", dest="trace", action="store_const", const=None,
+                   help="no link emulator: robot and edge over direct loopback TCP")
     d.add_argument("--log-level", default=None)
     d.set_defaults(func=_run_demo)
     r = sub.add_parser("robot", help="the robot daemon (same as zoffload-robot)")
     robot_parser(r).set_defaults(func=_run_robot)
     e = sub.add_parser("edge", help="the edge daemon (same as zoffload-edge)")
     edge_parser(e).set_defaults(func=_run_edge)
+    ex = sub.add_parser("experiment", help="reproduce the source studies' tables with real processes")
+    exs = ex.add_subparsers(dest="kind", required=True)
+    es = exs.add_parser("scan", help="robot -> link emulator -> edge, Table I of the scale paper")
+    es.add_argument("--trace", required=True, help="shipped trace name or CSV file")
+    es.add_argument("--policy", required=True, help="local, raw or fixed:V (e.g. fixed:0.05)")
+    es.add_argument("--scans", default="sim", help="'sim' or a folder of real scans")
+    es.add_argument("--out", required=True, help="results folder of this run")
+    es.add_argument("--max-scans", type=int, help="default: the trace's length at the sensor rate + 10 s")
+    es.add_argument("--replay", choices=["once", "loop", "pingpong"])
+    es.add_argument("--rate", type=float, help="sensor rate in Hz (default: the source's)")
+    es.add_argument("--seed", type=int, default=0)
+    es.add_argument("--log-level", default="WARNING")
+    es.set_defaults(func=_run_experiment)
+    rp = sub.add_parser("report", help="tables and plots from experiment folders")
+    rp.add_argument("runs", nargs="+", help="experiment run folders")
+    rp.add_argument("--out", help="report folder (default: the common parent of the runs)")
+    rp.add_argument("--log-level", default=None)
+    rp.set_defaults(func=_run_report)
     lk = sub.add_parser("link", help="the link emulator: a shaping TCP proxy driven by a trace")
     lk.add_argument("--trace", required=True,
                     help="a shipped trace (ethernet, capped, wifi-locations, outage) or a CSV file")

@@ -61,3 +61,30 @@ def test_voxel_set_transforms_by_pose() -> None:
     np.testing.assert_allclose(a.points(), b.points(), atol=1e-9)
     with pytest.raises(ValueError, match="4x4"):
         a.add(pts, np.eye(3))
+
+
+def test_se3_power() -> None:
+    from zoffload.edge.mapper import se3_power
+
+    c, s = np.cos(0.05), np.sin(0.05)
+    step = np.array([[c, -s, 0, 0.12], [s, c, 0, 0.01], [0, 0, 1, 0], [0, 0, 0, 1]])
+    np.testing.assert_allclose(se3_power(step, 3), step @ step @ step, atol=1e-12)
+    np.testing.assert_allclose(se3_power(step, 1), step, atol=1e-12)
+    root = se3_power(step @ step @ step @ step, 0.25)
+    np.testing.assert_allclose(root[:3, :3], step[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(root[:3, 3], step[:3, 3], atol=1e-9)
+
+
+def test_lost_scans_do_not_derail_the_mapper() -> None:
+    """Every 20 scans, 10 are lost (1 s of a 1.2 m/s robot): the seq gap stretches the motion model."""
+    src = SimulatedSource()
+    kept = [i for i in range(140) if i < 30 or (i % 20) < 10]
+    m = RobotMapper(voxel_size=0.4, max_range=src.max_range)
+    gt = {}
+    for i in kept:
+        f = src.read(i)
+        m.register(i, voxel_downsample(f.points, 0.05))
+        gt[i] = f.gt_pose
+    seqs, poses = m.trajectory()
+    err = trajectory_error(seqs, poses, np.array(kept), np.array([gt[i] for i in kept]))
+    assert err is not None and err.ate_rmse < 0.5, err

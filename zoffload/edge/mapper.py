@@ -1,5 +1,8 @@
 """One robot's map on the edge: KISS-ICP odometry plus a global registered map.
 
+Scans lost on the way (a gap in the sequence numbers) stretch KISS-ICP's constant-velocity
+prediction over the gap; without it, one lost second of a moving robot derails the odometry.
+
 KISS-ICP fixes its voxel size at construction and downsamples every frame again internally (at
 0.5x and 1.5x that size). The edge sizes it so the robot's own downsampling never makes the
 mapper's grids finer than the data: ``voxel = max(max_range / 100, 2 * robot voxel_max)``
@@ -35,6 +38,39 @@ def mapper_voxel_size(max_range: float, robot_voxel_max: float, configured: floa
     return max(max_range / 100.0, 2.0 * robot_voxel_max)
 
 
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+
+
+def _so3_exp_v(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation exp(w^) and the SE(3) left Jacobian V(w) (maps the twist's translation part)."""
+    th = float(np.linalg.norm(w))
+    W = _skew(w)
+    if th < 1e-9:
+        return np.eye(3) + W, np.eye(3) + 0.5 * W
+    R = np.eye(3) + np.sin(th) / th * W + (1 - np.cos(th)) / th**2 * W @ W
+    V = np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * W @ W
+    return R, V
+
+
+def se3_power(T: np.ndarray, a: float) -> np.ndarray:
+    """``T`` raised to a real power: the same constant screw motion ``a`` times over
+    (``exp(a log T)``)."""
+    R, t = T[:3, :3], T[:3, 3]
+    angle = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+    if angle < 1e-9:
+        w = np.zeros(3)
+    else:
+        w = angle / (2 * np.sin(angle)) * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    _, V = _so3_exp_v(w)
+    rho = np.linalg.solve(V, t)
+    Ra, Va = _so3_exp_v(a * w)
+    out = np.eye(4)
+    out[:3, :3] = Ra
+    out[:3, 3] = Va @ (a * rho)
+    return out
+
+
 def load_kiss_icp() -> tuple[Any, Any]:
     try:
         from kiss_icp.config import KISSConfig
@@ -55,6 +91,7 @@ class RobotMapper:
         max_points_per_voxel: int = 20,
         deskew: bool = False,
         map_resolution: float = 0.1,
+        max_gap: int = 50,
     ) -> None:
         KISSConfig, KissICP = load_kiss_icp()
         config = KISSConfig()
@@ -69,14 +106,23 @@ class RobotMapper:
         self.global_map = VoxelSet(map_resolution)
         self.map_resolution = map_resolution
         self.voxel_size = voxel_size
+        self.max_gap = max_gap  # beyond this many lost scans, constant velocity means nothing
         self.seqs: list[int] = []
         self.poses: list[np.ndarray] = []
 
     def register(self, seq: int, points: np.ndarray) -> Registration:
         t0 = time.perf_counter()
         frame = np.asarray(points, dtype=np.float64)
+        # Scans lost on the way: KISS-ICP predicts one scan period of motion, so stretch its
+        # constant-velocity model over the gap, and bring it back to one period afterwards.
+        gap = int(seq) - self.seqs[-1] if self.seqs else 1
+        stretch = 1 < gap <= self.max_gap
+        if stretch:
+            self.odometry.last_delta = se3_power(self.odometry.last_delta, gap)
         # Run KISS-ICP
         _, keypoints = self.odometry.register_frame(frame, np.empty(0))
+        if stretch:
+            self.odometry.last_delta = se3_power(self.odometry.last_delta, 1.0 / gap)
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
         # Grow the global map with the scan in world coordinates

@@ -1,0 +1,123 @@
+"""Running zoffload programs as child processes: shared by ``zoffload demo`` and the experiments."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from zoffload import wire
+from zoffload.config import ZenohSettings, open_session
+from zoffload.keys import Keys
+
+
+class Spawned:
+    """A zoffload program in its own process, with its output in a log file."""
+
+    def __init__(self, name: str, args: list[str], log_path: Path) -> None:
+        self.name = name
+        self.log_path = log_path
+        self._log = open(log_path, "w")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "zoffload.cli", *args],
+                                     stdout=self._log, stderr=subprocess.STDOUT, env=env)
+
+    def stop(self, timeout: float = 20.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return int(self.proc.returncode)
+
+    def tail(self, n: int = 15) -> str:
+        return "".join(self.log_path.read_text().splitlines(keepends=True)[-n:])
+
+
+def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60) -> Any:
+    """Open a session once ``owner`` listens (its port opens a moment after it starts)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if owner.proc.poll() is not None:
+            return None
+        try:
+            return open_session(z)
+        except Exception:
+            time.sleep(0.3)
+    return None
+
+
+def wait_token(session: Any, key: str, timeout: float) -> bool:
+    seen = threading.Event()
+    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
+    try:
+        return seen.wait(timeout)
+    finally:
+        sub.undeclare()
+
+
+class StatusWatcher:
+    """Keeps the latest robot status values, for progress lines."""
+
+    def __init__(self, session: Any, keys: Keys, robot: str) -> None:
+        self.values: dict[str, float] = {}
+        self._sub = session.declare_subscriber(keys.robot_status(robot), self._on)
+
+    def _on(self, sample: Any) -> None:
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        except wire.WireError:
+            return
+        assert isinstance(msg, wire.Status)
+        self.values.update(msg.values)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
+    return (
+        f"[{elapsed:5.1f} s] scans {int(st.get('published', 0))}/{total} sent, "
+        f"{int(st.get('acked', 0))} acked, {int(st.get('lost', 0))} lost | "
+        f"voxel {st.get('voxel', 0):.2f} m | T {st.get('last_T', 0):.3f} s | "
+        f"RTT {st.get('rtt_ms', float('nan')):.0f} ms | map {int(st.get('map_points', 0)):,} pts"
+    )
+
+
+def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float) -> int:
+    """Show progress until the robot process exits; returns its exit code."""
+    tty = sys.stdout.isatty()
+    start = time.monotonic()
+    next_plain = start
+    while robot_p.proc.poll() is None:
+        time.sleep(0.25)
+        elapsed = time.monotonic() - start
+        line = progress_line(status.values, elapsed, total)
+        if tty:
+            print("\r" + line.ljust(120), end="", flush=True)
+        elif time.monotonic() >= next_plain:
+            print(line, flush=True)
+            next_plain = time.monotonic() + 5
+        if elapsed > limit_s:
+            print("\nthe robot did not finish in time; stopping it")
+            robot_p.stop()
+    if tty:
+        print()
+    return int(robot_p.proc.returncode)
+
+
+def fetch_map(session: Any, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
+    for reply in session.get(keys.map(robot), timeout=timeout):
+        if reply.ok is not None:
+            msg = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
+            assert isinstance(msg, wire.MapReply)
+            return msg
+    return None
