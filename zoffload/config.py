@@ -70,6 +70,9 @@ class RobotSettings(_Strict):
     voxel: float = Field(default=0.05, ge=0)  # fixed voxel size; 0 sends raw scans
     voxel_range: tuple[float, float] = (0.01, 0.07)
     ack_timeout: float = Field(default=1.0, gt=0)  # an unanswered scan is lost after this
+    # Scans sent but not yet answered before a new one waits its turn (dropped at source, newest
+    # kept): like a TCP window, it keeps the link carrying whole scans. 0 = no limit.
+    max_in_flight: int = Field(default=3, ge=0)
     status_period: float = Field(default=1.0, gt=0)
     wait_edge: float = Field(default=5.0, ge=0)  # seconds to wait for an edge at start
     out_dir: str | None = None

@@ -158,7 +158,7 @@ def _print_link_phases(out: Path, trace_name: str) -> None:
     trace = load_trace(trace_name)
     wall_start = None
     for line in (out / "link.log").read_text().splitlines():
-        if line.startswith("ready") and "wall_start=" in line:
+        if line.startswith("clock") and "wall_start=" in line:
             wall_start = float(line.split("wall_start=")[1])
     if wall_start is None:
         return

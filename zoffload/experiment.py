@@ -93,6 +93,7 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
         else None,
         "points_before": float(np.mean([float(r["n_raw"]) for r in recs])) if recs else None,
         "points_after": _mean([r.get("n_sent") for r in recs]),
+        "scans_produced": (balance or {}).get("produced", len(recs)),
         "scans_sent": len(sent) if exp.policy != "local" else len(recs),
         "scans_received": len(received) if exp.policy != "local" else len(recs),
         "T_mean": float(t.mean()) if len(t) else None,
@@ -245,7 +246,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
 
 def _link_wall_start(log: Path) -> float | None:
     for line in log.read_text().splitlines() if log.exists() else []:
-        if line.startswith("ready") and "wall_start=" in line:
+        if line.startswith("clock") and "wall_start=" in line:
             return float(line.split("wall_start=")[1])
     return None
 
@@ -264,7 +265,8 @@ def summary_line(row: dict[str, Any]) -> str:
     err = row.get("trajectory_error") or {}
     return (f"{row['policy']:>12} on {row['trace']}: S {f(row['S_kB'], '.0f')} kB, points "
             f"{f(row['points_before'], '.0f')} -> {f(row['points_after'], '.0f')}, received "
-            f"{row['scans_received']}/{row['scans_sent']}, T {f(row['T_mean'], '.3f')} s "
+            f"{row['scans_received']}/{row['scans_produced']} (sent {row['scans_sent']}), "
+            f"T {f(row['T_mean'], '.3f')} s "
             f"({f(100 * row['T_le_0.11'] if row['T_le_0.11'] is not None else None, '.0f')} % <= 0.11), "
             f"map {row['map_points']:,} pts, ATE {f(err.get('ate_rmse'), '.3f')} m")
 

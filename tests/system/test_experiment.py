@@ -19,8 +19,8 @@ pytestmark = pytest.mark.system
 pytest.importorskip("kiss_icp")
 
 HEAD = "time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n"
-# Good for 1.5 s, then 6 Mbps: raw simulator scans need ~27 Mbps, 10 cm voxels fit.
-BAD_LINK = HEAD + "0, 100, 100, 2, 0, 0\n1.5, 6, 6, 30, 5, 0\n"
+# Good for 1.5 s, then 12 Mbps: raw simulator scans need ~27 Mbps, 10 cm voxels (~9 Mbps) fit.
+BAD_LINK = HEAD + "0, 100, 100, 2, 0, 0\n1.5, 12, 12, 30, 5, 0\n"
 
 
 def experiment(tmp_path: Path, policy: str, trace: Path, scans: int, name: str) -> dict:
@@ -41,20 +41,20 @@ def test_raw_degrades_on_a_bad_link_while_local_and_downsampled_do_not(tmp_path:
     # Local: every scan, at the sensor period
     assert local["scans_received"] == local["scans_sent"] == 60
     assert 0.09 < local["T_mean"] < 0.12 and local["S_kB"] is None
-    # Raw through 6 Mbps: scans lost and late
-    assert raw["scans_received"] < 0.7 * raw["scans_sent"], raw
+    # Raw through 12 Mbps: fewer scans reach the edge, further apart
+    assert raw["scans_received"] < 0.7 * raw["scans_produced"], raw
     assert raw["T_mean"] > 0.15, raw
-    assert raw["balance"]["produced"] == 60
+    assert raw["scans_produced"] == 60
     # 10 cm voxels fit the same link
-    assert small["scans_received"] >= 0.9 * small["scans_sent"] and small["T_mean"] < 0.13, small
+    assert small["scans_received"] >= 0.9 * small["scans_produced"] and small["T_mean"] < 0.13, small
     assert small["points_after"] < 0.5 * small["points_before"]
     # The emulator really shaped the bad phase, and every scan record says what the link was
     with open(tmp_path / "raw" / "link.csv") as f:
         link = list(csv.DictReader(f))
-    assert max(float(x["up_mbps"]) for x in link[3:6]) < 6 * 1.1
+    assert max(float(x["up_mbps"]) for x in link[3:6]) < 12 * 1.1
     with open(tmp_path / "raw" / "scans.csv") as f:
         recs = list(csv.DictReader(f))
-    assert {r["link_up_mbps"] for r in recs} >= {"100.0", "6.0"}
+    assert {r["link_up_mbps"] for r in recs} >= {"100.0", "12.0"}
     assert {"seq", "voxel", "bytes", "interarrival", "rtt", "status"} <= set(recs[0])
     # The report renders our rows, the paper's rows and the plots
     r = subprocess.run(script("zoffload") + ["report", str(tmp_path / "local"), str(tmp_path / "raw"),

@@ -21,7 +21,8 @@ HEAD = "time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n"
 
 
 @contextmanager
-def emulator(trace: Path, target_port: int, extra: list[str] | None = None) -> Iterator[tuple[int, float]]:
+def emulator(trace: Path, target_port: int, extra: list[str] | None = None
+             ) -> Iterator[tuple[int, subprocess.Popen[str]]]:
     port = free_tcp_port()
     p = subprocess.Popen([sys.executable, "-m", "zoffload.cli", "link", "--trace", str(trace),
                           "--listen-port", str(port), "--target", f"127.0.0.1:{target_port}", "--quiet",
@@ -30,7 +31,7 @@ def emulator(trace: Path, target_port: int, extra: list[str] | None = None) -> I
     line = p.stdout.readline()
     assert line.startswith("ready"), line
     try:
-        yield port, float(line.split("wall_start=")[1])
+        yield port, p
     finally:
         p.send_signal(2)
         p.wait(20)
@@ -56,8 +57,10 @@ def saturate(trace_text: str, tmp_path: Path, seconds: float) -> tuple[float, li
     ready = threading.Event()
     threading.Thread(target=sink, args=(sink_port, arrivals, ready), daemon=True).start()
     ready.wait(5)
-    with emulator(trace, sink_port) as (port, wall_start):
+    with emulator(trace, sink_port) as (port, proc):
         with socket.create_connection(("127.0.0.1", port)) as c:
+            assert proc.stdout is not None
+            wall_start = float(proc.stdout.readline().split("wall_start=")[1])  # clock starts now
             buf = b"\x00" * 65536
             end = time.time() + seconds
             while time.time() < end:

@@ -24,6 +24,7 @@ import random
 import socket
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from zoffload.link.trace import Trace
@@ -142,15 +143,14 @@ class LinkEmulator:
         self.quantum = quantum
         self.queue_ms = queue_ms
         self.stats = LinkStats()
-        self.start = 0.0
-        self.wall_start = 0.0
+        # The trace's clock starts with the first connection (the robot's), not with this process
+        self.start: float | None = None
+        self.wall_start: float | None = None
+        self.on_clock_start: list[Callable[[float], None]] = []
         self._server: asyncio.base_events.Server | None = None
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start_serving(self) -> None:
-        loop = asyncio.get_running_loop()
-        self.start = loop.time()
-        self.wall_start = time.time()
         sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         _small_buffers(sock)
@@ -159,6 +159,11 @@ class LinkEmulator:
 
     async def _handle(self, c_reader: asyncio.StreamReader, c_writer: asyncio.StreamWriter) -> None:
         self.stats.connections += 1
+        if self.start is None:
+            self.start = asyncio.get_running_loop().time()
+            self.wall_start = time.time()
+            for callback in self.on_clock_start:
+                callback(self.wall_start)
         try:
             up_sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             _small_buffers(up_sock)
@@ -170,6 +175,7 @@ class LinkEmulator:
             c_writer.close()
             return
         s = self.start
+        assert s is not None
         up = Direction("up", self.trace, s, self.stats, self.rng, self.quantum, self.queue_ms)
         down = Direction("down", self.trace, s, self.stats, self.rng, self.quantum, self.queue_ms)
         tasks = [asyncio.ensure_future(x) for x in (up.read_side(c_reader), up.write_side(t_writer),
@@ -187,6 +193,10 @@ class LinkEmulator:
             t.cancel()
         with contextlib.suppress(Exception):
             await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    def elapsed(self) -> float | None:
+        """Seconds on the trace clock, or None before the first connection."""
+        return None if self.start is None else asyncio.get_running_loop().time() - self.start
 
     def report_line(self, second: int) -> str:
         st = self.trace.at(second + 0.5)

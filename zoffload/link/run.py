@@ -29,20 +29,22 @@ def run(trace: Trace, listen_port: int, target: tuple[str, int], stop: StopSigna
         report: Path | None = None, seed: int = 0, queue_ms: float = 100.0, quiet: bool = False) -> None:
     async def main() -> None:
         emu = LinkEmulator(trace, listen_port, target, seed=seed, queue_ms=queue_ms)
+        emu.on_clock_start.append(lambda wall: print(f"clock wall_start={wall:.6f}", flush=True))
         await emu.start_serving()
         log.info("link emulator on 127.0.0.1:%d -> %s:%d, trace %s", listen_port, *target, trace.name)
-        print(f"ready {listen_port} wall_start={emu.wall_start:.6f}", flush=True)
-        loop = asyncio.get_running_loop()
+        print(f"ready {listen_port}", flush=True)
         second = 0
         while not stop.is_set():
             await asyncio.sleep(0.2)
-            now = int(loop.time() - emu.start)
-            while second < now - 1:  # report a second once it is complete (plus delivery slack)
+            elapsed = emu.elapsed()
+            if elapsed is None:
+                continue
+            while second < int(elapsed) - 1:  # report a second once complete (plus delivery slack)
                 if not quiet:
                     print(emu.report_line(second), flush=True)
                 second += 1
         await emu.close()
         if report is not None:
-            write_report(report, emu, second + 1)
+            write_report(report, emu, second + 1 if emu.start is not None else 0)
 
     asyncio.run(main())

@@ -124,6 +124,9 @@ class RobotDaemon:
             if not self.edges:
                 self.ledger.drop_at_source(reading.seq, "edge_absent", record)
                 return
+            if s.max_in_flight and self.ledger.in_flight >= s.max_in_flight:
+                self.ledger.drop_at_source(reading.seq, "window", record)
+                return
             last_t = self.ledger.last_interarrival
         # Choose the voxel size, downsample
         self.voxel = self.policy.choose(last_t, self.voxel)
