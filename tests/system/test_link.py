@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -37,7 +37,8 @@ def emulator(trace: Path, target_port: int, extra: list[str] | None = None
         p.wait(20)
 
 
-def sink(port: int, arrivals: list[tuple[float, int]], ready: threading.Event) -> None:
+def serve_one(port: int, ready: threading.Event, handle: Callable[[socket.socket], None]) -> None:
+    """Accept one connection on ``port`` and hand it to ``handle``."""
     with socket.socket() as srv:
         srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         srv.bind(("127.0.0.1", port))
@@ -45,8 +46,15 @@ def sink(port: int, arrivals: list[tuple[float, int]], ready: threading.Event) -
         ready.set()
         conn, _ = srv.accept()
         with conn:
-            while data := conn.recv(65536):
-                arrivals.append((time.time(), len(data)))
+            handle(conn)
+
+
+def sink(port: int, arrivals: list[tuple[float, int]], ready: threading.Event) -> None:
+    def record(conn: socket.socket) -> None:
+        while data := conn.recv(65536):
+            arrivals.append((time.time(), len(data)))
+
+    serve_one(port, ready, record)
 
 
 def saturate(trace_text: str, tmp_path: Path, seconds: float) -> tuple[float, list[tuple[float, int]]]:
@@ -95,15 +103,11 @@ def test_outage_stalls_then_resumes(tmp_path: Path) -> None:
 
 
 def echo_server(port: int, ready: threading.Event) -> None:
-    with socket.socket() as srv:
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind(("127.0.0.1", port))
-        srv.listen()
-        ready.set()
-        conn, _ = srv.accept()
-        with conn:
-            while data := conn.recv(4096):
-                conn.sendall(data)
+    def echo(conn: socket.socket) -> None:
+        while data := conn.recv(4096):
+            conn.sendall(data)
+
+    serve_one(port, ready, echo)
 
 
 def round_trips(trace_text: str, tmp_path: Path, n: int = 30) -> list[float]:

@@ -39,6 +39,31 @@ class LidarModel:
 VLP16 = LidarModel(elevations_deg=tuple(float(e) for e in range(-15, 16, 2)))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _rings_hit(  # pragma: no cover - compiled
+    hit: np.ndarray, tan_el: np.ndarray, t0: float, t1: float, zlo: float, zhi: float
+) -> None:
+    """A primitive spans horizontal distances [t0, t1] along a column, heights [zlo, zhi] relative
+    to the sensor: each ring whose beam is inside that height band there hits it first, unless
+    something nearer already did."""
+    for k in range(tan_el.shape[0]):
+        if t0 >= hit[k]:
+            continue
+        lo = t0
+        hi = t1
+        te = tan_el[k]
+        if abs(te) < 1e-12:
+            if zlo > 0.0 or zhi < 0.0:
+                continue
+        else:
+            ua = zlo / te
+            ub = zhi / te
+            lo = max(lo, min(ua, ub))
+            hi = min(hi, max(ua, ub))
+        if hi >= lo and lo < hit[k]:
+            hit[k] = lo
+
+
 @njit(cache=True, nogil=True)
 def _cast(  # pragma: no cover - compiled
     origin: np.ndarray,
@@ -88,25 +113,7 @@ def _cast(  # pragma: no cover - compiled
                 t1 = min(t1, max(ta, tb))
             if t1 < max(t0, 0.0) or t0 > max_range:
                 continue
-            t0 = max(t0, 0.0)
-            for k in range(nring):
-                if t0 >= hit[c, k]:
-                    continue
-                lo = t0
-                hi = t1
-                te = tan_el[k]
-                zlo = box_min[b, 2] - oz
-                zhi = box_max[b, 2] - oz
-                if abs(te) < 1e-12:
-                    if zlo > 0.0 or zhi < 0.0:
-                        continue
-                else:
-                    ua = zlo / te
-                    ub = zhi / te
-                    lo = max(lo, min(ua, ub))
-                    hi = min(hi, max(ua, ub))
-                if hi >= lo and lo < hit[c, k]:
-                    hit[c, k] = lo
+            _rings_hit(hit[c], tan_el, max(t0, 0.0), t1, box_min[b, 2] - oz, box_max[b, 2] - oz)
         # Vertical cylinders: 2D circle, then z interval
         for j in range(cyl.shape[0]):
             fx = ox - cyl[j, 0]
@@ -121,25 +128,7 @@ def _cast(  # pragma: no cover - compiled
             t1 = -bq + sq
             if t1 < 0.0:
                 continue
-            t0 = max(t0, 0.0)
-            for k in range(nring):
-                if t0 >= hit[c, k]:
-                    continue
-                te = tan_el[k]
-                lo = t0
-                hi = t1
-                zlo = cyl[j, 3] - oz
-                zhi = cyl[j, 4] - oz
-                if abs(te) < 1e-12:
-                    if zlo > 0.0 or zhi < 0.0:
-                        continue
-                else:
-                    ua = zlo / te
-                    ub = zhi / te
-                    lo = max(lo, min(ua, ub))
-                    hi = min(hi, max(ua, ub))
-                if hi >= lo and lo < hit[c, k]:
-                    hit[c, k] = lo
+            _rings_hit(hit[c], tan_el, max(t0, 0.0), t1, cyl[j, 3] - oz, cyl[j, 4] - oz)
     return hit
 
 
