@@ -21,7 +21,15 @@ from zoffload.config import EdgeSettings, RobotSettings, ZenohSettings, write_ef
 from zoffload.errors import ExitCode
 from zoffload.keys import Keys
 from zoffload.net import free_tcp_port, loopback_endpoint
-from zoffload.runner import Spawned, StatusWatcher, connect_when_listening, fetch_map, wait_token, watch
+from zoffload.runner import (
+    Spawned,
+    StatusWatcher,
+    connect_when_listening,
+    fetch_map,
+    link_clock_start,
+    wait_token,
+    watch,
+)
 
 
 @dataclass(frozen=True)
@@ -156,10 +164,7 @@ def _print_link_phases(out: Path, trace_name: str) -> None:
     from zoffload.link.trace import load_trace
 
     trace = load_trace(trace_name)
-    wall_start = None
-    for line in (out / "link.log").read_text().splitlines():
-        if line.startswith("clock") and "wall_start=" in line:
-            wall_start = float(line.split("wall_start=")[1])
+    wall_start = link_clock_start(out / "link.log")
     if wall_start is None:
         return
     with open(out / "robot_scans.csv") as f:

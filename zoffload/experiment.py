@@ -29,7 +29,15 @@ from zoffload.keys import Keys
 from zoffload.link.trace import Trace, load_trace
 from zoffload.net import free_tcp_port, loopback_endpoint
 from zoffload.robot.ledger import RECORD_FIELDS
-from zoffload.runner import Spawned, StatusWatcher, connect_when_listening, fetch_map, wait_token, watch
+from zoffload.runner import (
+    Spawned,
+    StatusWatcher,
+    connect_when_listening,
+    fetch_map,
+    link_clock_start,
+    wait_token,
+    watch,
+)
 from zoffload.sources import open_scan_source
 from zoffload.sources.base import Replay, ScanSource
 
@@ -224,7 +232,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
             robot_p.stop()
         link_p.stop()
         edge_p.stop()
-    wall_start = _link_wall_start(out / "link.log")
+    wall_start = link_clock_start(out / "link.log")
     recs = _read_scans(out / "robot_scans.csv")
     _with_link_rate(recs, trace, wall_start)
     _write_scans(out / "scans.csv", recs)
@@ -242,13 +250,6 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"))
     row["cut_short"] = cut_short
     return row
-
-
-def _link_wall_start(log: Path) -> float | None:
-    for line in log.read_text().splitlines() if log.exists() else []:
-        if line.startswith("clock") and "wall_start=" in line:
-            return float(line.split("wall_start=")[1])
-    return None
 
 
 def _read_scans(path: Path) -> list[dict[str, Any]]:

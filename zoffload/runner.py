@@ -114,6 +114,14 @@ def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float) -
     return int(robot_p.proc.returncode)
 
 
+def link_clock_start(log: Path) -> float | None:
+    """Wall time at which ``zoffload link`` started its trace clock (its first connection)."""
+    for line in log.read_text().splitlines() if log.exists() else []:
+        if line.startswith("clock") and "wall_start=" in line:
+            return float(line.split("wall_start=")[1])
+    return None
+
+
 def fetch_map(session: Any, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
     for reply in session.get(keys.map(robot), timeout=timeout):
         if reply.ok is not None:

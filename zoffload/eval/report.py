@@ -70,6 +70,13 @@ def _times(r: dict[str, Any]) -> np.ndarray:
     return stamps - stamps[0] if len(stamps) else stamps
 
 
+def _save(plt: Any, fig: Any, path: Path, dpi: int = 100) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
     plt = _plt()
     paths = []
@@ -93,10 +100,7 @@ def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
     axl.set_ylabel("link up [Mbps]")
     axl.set_xlabel("time [s]")
     axl.legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(out / "T_over_time.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "T_over_time.png"))
     # Points per scan
     fig, ax = plt.subplots(figsize=(10, 4))
     for r in runs:
@@ -105,10 +109,7 @@ def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
     ax.set_xlabel("time [s]")
     ax.set_ylabel("points per scan sent")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths.append(out / "points_per_scan.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "points_per_scan.png"))
     # Top view of each map
     with_maps = [r for r in runs if r["map_sample"] is not None and len(r["map_sample"])]
     if with_maps:
@@ -118,10 +119,7 @@ def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
             ax.scatter(m[:, 0], m[:, 1], s=0.1, c="0.3", linewidths=0)
             ax.set_aspect("equal")
             ax.set_title(f"{r['policy']}: {r['map_points']:,} pts", fontsize=9)
-        fig.tight_layout()
-        paths.append(out / "maps.png")
-        fig.savefig(paths[-1], dpi=90)
-        plt.close(fig)
+        paths.append(_save(plt, fig, out / "maps.png", dpi=90))
     return paths
 
 
