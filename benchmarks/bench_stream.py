@@ -72,14 +72,17 @@ def raw(payloads: list[bytes], seconds: float) -> tuple[float, float]:
     return stats["bytes"] / span / 1e6, stats["n"] / span
 
 
-def daemons(frames: list[ScanFrame], seconds: float) -> tuple[float, float, dict[str, int]]:
+def daemons(
+    frames: list[ScanFrame], seconds: float, max_in_flight: int
+) -> tuple[float, float, dict[str, int]]:
     port = free_tcp_port()
     edge = subprocess.Popen([sys.executable, "-m", "zoffload.cli", "edge", "--no-mapping",
                              "--no-multicast-scouting", "--no-shm", "-l", loopback_endpoint(port),
                              "--log-level", "WARNING"])
     rate = float(os.environ.get("BENCH_OFFERED_HZ", "1000"))  # beyond what either path delivers
     settings = RobotSettings(voxel=0.0, rate_hz=rate, replay="loop", max_scans=int(rate * seconds),
-                             ack_timeout=2.0, wait_edge=30, status_period=5.0, zenoh=z(port, False))
+                             ack_timeout=2.0, wait_edge=30, status_period=5.0, max_in_flight=max_in_flight,
+                             zenoh=z(port, False))
     robot = RobotDaemon(settings, source=MemorySource(frames, rate))
     robot.start()
     robot.run()
@@ -109,9 +112,11 @@ def main() -> None:
     print(f"payload: {np.mean([len(p) for p in payloads]) / 1e6:.2f} MB per scan (raw HDL-64)")
     raw_mb, raw_n = raw(payloads, seconds)
     print(f"raw zenoh put/sub : {raw_mb:7.1f} MB/s  {raw_n:6.1f} scans/s")
-    d_mb, d_n, balance = daemons(frames, seconds)
-    print(f"robot -> edge     : {d_mb:7.1f} MB/s  {d_n:6.1f} scans/s delivered  (ledger {balance})")
-    print(f"ratio zoffload / raw: {d_mb / raw_mb:.2f} (target >= 0.90)")
+    for window in (0, RobotSettings().max_in_flight):
+        d_mb, d_n, balance = daemons(frames, seconds, window)
+        label = f"window {window}" if window else "no window"
+        print(f"robot -> edge, {label:9}: {d_mb:7.1f} MB/s  {d_n:6.1f} scans/s delivered  (ledger {balance})")
+        print(f"  ratio zoffload / raw: {d_mb / raw_mb:.2f} (target >= 0.90)")
 
 
 if __name__ == "__main__":
