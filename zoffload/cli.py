@@ -63,6 +63,8 @@ def robot_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--max-scans", type=int, help="stop after this many scans")
     p.add_argument("--voxel", type=float, help="fixed voxel size in m; 0 sends raw scans")
     p.add_argument("--ack-timeout", type=float, help="seconds before an unanswered scan is lost")
+    p.add_argument("--max-in-flight", type=int,
+                   help="unanswered scans before the next is held back (default 3; 0 = no limit)")
     p.add_argument("--wait-edge", type=float, help="seconds to wait for an edge at start")
     p.add_argument("--out", dest="out_dir", help="results folder")
     return p
@@ -89,7 +91,7 @@ def _flags(a: argparse.Namespace, names: Sequence[str]) -> dict[str, Any]:
 
 def robot_settings(a: argparse.Namespace) -> RobotSettings:
     names = ["namespace", "robot_id", "scans", "replay", "rate_hz", "max_scans", "voxel",
-             "ack_timeout", "wait_edge", "out_dir"]
+             "ack_timeout", "max_in_flight", "wait_edge", "out_dir"]
     return load_settings(RobotSettings, a.settings, _flags(a, names), "ZOFFLOAD_ROBOT__")
 
 
@@ -194,7 +196,11 @@ def _guard(fn: Callable[[argparse.Namespace], int], a: argparse.Namespace) -> in
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="zoffload", description=__doc__.splitlines()[0] if __doc__ else None)
+    p = argparse.ArgumentParser(
+        prog="zoffload",
+        description="Offload a robot's LiDAR mapping to an edge computer over Zenoh, and keep working "
+        "when the link degrades. Start with: zoffload demo",
+    )
     p.add_argument("--version", action="version", version=f"zoffload {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", help="robot + edge on localhost with the simulator, ~30 s")
