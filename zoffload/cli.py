@@ -9,6 +9,7 @@ Python API. Every program takes the Zenoh session flags of the zenoh examples
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
@@ -174,6 +175,22 @@ def _run_report(a: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def _run_train(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from zoffload.policy.dqn import DQNConfig
+    from zoffload.policy.training import run_training
+
+    lo, hi = a.voxel_range
+    if not 0 < lo < hi:
+        raise ConfigError(f"--voxel-range {lo} {hi}: need 0 < low < high")
+    metrics = run_training([Path(d) for d in a.data], Path(a.out),
+                           DQNConfig(episodes=a.episodes, seed=a.seed), (lo, hi))
+    print(json.dumps(metrics["evaluation"], indent=2))
+    print(f"model, curves and metrics in {a.out}")
+    return ExitCode.OK
+
+
 def _guard(fn: Callable[[argparse.Namespace], int], a: argparse.Namespace) -> int:
     """Run a command, turning the errors a user can cause into a message and a named exit code."""
     setup_logging(getattr(a, "log_level", None))
@@ -224,7 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     exs = ex.add_subparsers(dest="kind", required=True)
     es = exs.add_parser("scan", help="robot -> link emulator -> edge, Table I of the scale paper")
     es.add_argument("--trace", required=True, help="shipped trace name or CSV file")
-    es.add_argument("--policy", required=True, help="local, raw or fixed:V (e.g. fixed:0.05)")
+    es.add_argument("--policy", required=True,
+                    help="local, raw, fixed:V (e.g. fixed:0.05), dqn (the packaged model) or dqn:PATH")
     es.add_argument("--scans", default="sim", help="'sim' or a folder of real scans")
     es.add_argument("--out", required=True, help="results folder of this run")
     es.add_argument("--max-scans", type=int, help="default: the trace's length at the sensor rate + 10 s")
@@ -238,6 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", help="report folder (default: the common parent of the runs)")
     rp.add_argument("--log-level", default=None)
     rp.set_defaults(func=_run_report)
+    tp = sub.add_parser("train-policy", help="train the DQN scale policy from recorded runs (torch)")
+    tp.add_argument("--data", nargs="+", required=True, help="experiment run folders (their scans.csv)")
+    tp.add_argument("--out", required=True, help="where the ONNX model, curves and metrics go")
+    tp.add_argument("--episodes", type=int, default=300_000, help="one scan = one episode (default 300000)")
+    tp.add_argument("--voxel-range", type=float, nargs=2, default=(0.01, 0.07), metavar=("LOW", "HIGH"))
+    tp.add_argument("--seed", type=int, default=0)
+    tp.add_argument("--log-level", default=None)
+    tp.set_defaults(func=_run_train)
     lk = sub.add_parser("link", help="the link emulator: a shaping TCP proxy driven by a trace")
     lk.add_argument("--trace", required=True,
                     help="a shipped trace (ethernet, capped, wifi-locations, outage) or a CSV file")

@@ -67,7 +67,8 @@ class RobotSettings(_Strict):
     rate_hz: float | None = Field(default=None, gt=0)  # None: the source's own rate
     max_scans: int | None = Field(default=None, ge=1)
     sim_seed: int = 0
-    voxel: float = Field(default=0.05, ge=0)  # fixed voxel size; 0 sends raw scans
+    voxel: float = Field(default=0.05, ge=0)  # fixed voxel size (and the DQN's fallback); 0 = raw
+    scale_policy: str = "fixed"  # "fixed", "dqn" (the packaged model) or "dqn:PATH"
     voxel_range: tuple[float, float] = (0.01, 0.07)
     ack_timeout: float = Field(default=1.0, gt=0)  # an unanswered scan is lost after this
     # Scans sent but not yet answered before a new one waits its turn (dropped at source, newest

@@ -57,9 +57,12 @@ class ScanExperiment:
 
 
 def policy_voxel(policy: str) -> float | None:
-    """Voxel size of a fixed policy; None for ``local``. ``ConfigError`` for an unknown policy."""
+    """Voxel size of a fixed policy (the fallback size for ``dqn``); None for ``local``.
+    ``ConfigError`` for an unknown policy."""
     if policy == "local":
         return None
+    if policy == "dqn" or policy.startswith("dqn:"):
+        return 0.05
     if policy == "raw":
         return 0.0
     if policy.startswith("fixed:"):
@@ -70,7 +73,7 @@ def policy_voxel(policy: str) -> float | None:
         if v <= 0:
             raise ConfigError(f"policy {policy!r}: the voxel size must be positive")
         return v
-    raise ConfigError(f"unknown policy {policy!r} (local, raw, fixed:V)")
+    raise ConfigError(f"unknown policy {policy!r} (local, raw, fixed:V, dqn, dqn:PATH)")
 
 
 def _reference(source: ScanSource, indices: list[int], is_sim: bool, gt: dict[int, np.ndarray]
@@ -190,8 +193,10 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
                  max_scans: int, is_sim: bool, source: ScanSource, out: Path) -> dict[str, Any]:
     edge_port, link_port = free_tcp_port(), free_tcp_port()
     edge = EdgeSettings(map_dir=str(out), zenoh=_no_shm(listen=[loopback_endpoint(edge_port)]))
+    scale_policy = exp.policy if exp.policy.startswith("dqn") else "fixed"
     robot = RobotSettings(
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
+        scale_policy=scale_policy,
         out_dir=str(out), wait_edge=30,
         zenoh=_no_shm(mode="client", connect=[loopback_endpoint(link_port)],
                       cfg=[f"transport/link/tcp/so_sndbuf:{ROBOT_SNDBUF}"]),

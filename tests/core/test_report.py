@@ -9,7 +9,7 @@ from zoffload.experiment import policy_voxel
 
 def test_policies() -> None:
     assert policy_voxel("local") is None and policy_voxel("raw") == 0.0
-    assert policy_voxel("fixed:0.05") == 0.05
+    assert policy_voxel("fixed:0.05") == 0.05 and policy_voxel("dqn") == 0.05
     for bad in ("fixed:", "fixed:-1", "dqn-someday", "fixed:abc"):
         with pytest.raises(ConfigError):
             policy_voxel(bad)

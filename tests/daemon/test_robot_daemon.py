@@ -84,3 +84,19 @@ def test_non_finite_points_are_dropped_and_counted(free_port: int) -> None:
     assert recs[0]["n_nonfinite"] == 100 and recs[3]["n_nonfinite"] == 50
     assert recs[3]["status"] == "source:empty"
     assert m["balance"]["acked"] == 5
+
+
+def test_robot_runs_an_onnx_scale_policy_against_the_edge(free_port: int, tmp_path: Path) -> None:
+    pytest.importorskip("onnx")
+    from tests.core.test_policy_runtime import threshold_model
+
+    model = threshold_model(tmp_path / "policy.onnx")  # finer when T < 0.1 s, coarser above
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=30, rate_hz=10,
+                                        scale_policy=f"dqn:{model}"))
+    assert robot.policy.name == "dqn"
+    m = robot.metrics()
+    assert m["balanced"] and m["balance"]["acked"] >= 28
+    voxels = [r["voxel"] for r in robot.ledger.records.values() if "voxel" in r]
+    assert set(voxels) <= {0.01, 0.03, 0.05, 0.07} and len(set(voxels)) > 1
+    assert voxels[0] == 0.03  # T0 = 0 < 0.1: the first decision is "finer" from v0 = 0.05

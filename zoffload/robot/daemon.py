@@ -24,7 +24,8 @@ from zoffload import wire
 from zoffload.config import RobotSettings, open_session, write_effective
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
-from zoffload.policy.scale import FixedScale, ScalePolicy
+from zoffload.policy.onnx_scale import load_scale_policy
+from zoffload.policy.scale import ScalePolicy
 from zoffload.robot.ledger import RECORD_FIELDS, ScanLedger
 from zoffload.robot.sensor import Reading, SensorThread
 from zoffload.sources import ScanSource, open_scan_source
@@ -49,7 +50,8 @@ class RobotDaemon:
         self.keys = Keys(settings.namespace)
         self.stop = stop or StopSignal()
         self.source = source or open_scan_source(settings.scans, sim_seed=settings.sim_seed)
-        self.policy = policy or FixedScale(settings.voxel)
+        self.policy = policy or load_scale_policy(settings.scale_policy, settings.voxel,
+                                                  settings.voxel_range)
         self.ledger = ScanLedger()
         self.edges: set[str] = set()
         self._lock = threading.Lock()  # the ack callback and the main loop share the ledger
