@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from zoffload import runner
 from zoffload.config import EdgeSettings, ZenohSettings, open_session
 from zoffload.edge.daemon import EdgeDaemon
 from zoffload.keys import Keys
@@ -35,13 +36,8 @@ def wait_for(cond: Callable[[], bool], timeout: float = 10.0, what: str = "condi
 
 def wait_token(session: Any, key: str, timeout: float = 20.0) -> None:
     """Block until a liveliness token matching ``key`` exists (no sleeping on guesses)."""
-    seen = threading.Event()
-    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
-    try:
-        if not seen.wait(timeout):
-            raise AssertionError(f"no liveliness token {key} after {timeout} s")
-    finally:
-        sub.undeclare()
+    if not runner.wait_token(session, key, timeout):
+        raise AssertionError(f"no liveliness token {key} after {timeout} s")
 
 
 @contextmanager

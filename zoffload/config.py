@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from zoffload.errors import ConfigError, ZenohSessionError
 from zoffload.keys import DEFAULT_NAMESPACE, check_id
+from zoffload.sources.base import Replay
 
 
 class _Strict(BaseModel):
@@ -63,7 +64,7 @@ class RobotSettings(_Strict):
     robot_id: str = "robot1"
     namespace: str = DEFAULT_NAMESPACE
     scans: str = "sim"  # "sim" or a folder of .bin / .pcd / .ply scans
-    replay: Literal["once", "loop", "pingpong"] = "once"
+    replay: Replay = "once"
     rate_hz: float | None = Field(default=None, gt=0)  # None: the source's own rate
     max_scans: int | None = Field(default=None, ge=1)
     sim_seed: int = 0

@@ -22,26 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from zoffload.config import EdgeSettings, RobotSettings, ZenohSettings, write_effective
+from zoffload.config import EdgeSettings, RobotSettings
 from zoffload.errors import ConfigError
 from zoffload.eval.trajectory import trajectory_error
-from zoffload.keys import Keys
 from zoffload.link.trace import Trace, load_trace
-from zoffload.net import free_tcp_port, loopback_endpoint
 from zoffload.robot.ledger import RECORD_FIELDS
-from zoffload.runner import (
-    Spawned,
-    StatusWatcher,
-    connect_when_listening,
-    fetch_map,
-    link_clock_start,
-    wait_token,
-    watch,
-)
+from zoffload.runner import link_clock_start, run_offload
 from zoffload.sources import open_scan_source
 from zoffload.sources.base import Replay, ScanSource
-
-ROBOT_SNDBUF = 65536
 
 
 @dataclass(frozen=True)
@@ -184,59 +172,16 @@ def _sample(points: np.ndarray, n: int = 200_000) -> np.ndarray:
     return points[:: max(1, len(points) // n)].astype(np.float32)
 
 
-def _no_shm(**kw: Any) -> ZenohSettings:
-    """Session settings for a run through the emulator: no multicast, no shared memory."""
-    return ZenohSettings(multicast_scouting=False, shared_memory=False, **kw)
-
-
 def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, replay: Replay,
                  max_scans: int, is_sim: bool, source: ScanSource, out: Path) -> dict[str, Any]:
-    edge_port, link_port = free_tcp_port(), free_tcp_port()
-    edge = EdgeSettings(map_dir=str(out), zenoh=_no_shm(listen=[loopback_endpoint(edge_port)]))
-    scale_policy = exp.policy if exp.policy.startswith("dqn") else "fixed"
+    edge = EdgeSettings(map_dir=str(out))
     robot = RobotSettings(
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
-        scale_policy=scale_policy,
-        out_dir=str(out), wait_edge=30,
-        zenoh=_no_shm(mode="client", connect=[loopback_endpoint(link_port)],
-                      cfg=[f"transport/link/tcp/so_sndbuf:{ROBOT_SNDBUF}"]),
+        scale_policy=exp.policy if exp.policy.startswith("dqn") else "fixed", out_dir=str(out), wait_edge=30,
     )
-    write_effective(edge, out / "edge.yaml")
-    write_effective(robot, out / "robot.yaml")
-    keys = Keys(robot.namespace)
-    edge_p = Spawned("edge", ["edge", "--settings", str(out / "edge.yaml")], out / "edge.log")
-    link_p = Spawned("link", ["link", "--trace", exp.trace, "--listen-port", str(link_port), "--target",
-                              f"127.0.0.1:{edge_port}", "--report", str(out / "link.csv"),
-                              "--seed", str(exp.seed)], out / "link.log")
-    robot_p: Spawned | None = None
-    reply = None
-    cut_short = False
-    try:
-        watcher_z = _no_shm(connect=[loopback_endpoint(edge_port)])
-        session = connect_when_listening(watcher_z, edge_p)
-        if session is None:
-            raise RuntimeError("the edge did not start:\n" + edge_p.tail())
-        with session:
-            status = StatusWatcher(session, keys, robot.robot_id)
-            if not wait_token(session, keys.any_edge_alive(), 30):
-                raise RuntimeError("the edge did not come up:\n" + edge_p.tail())
-            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
-            try:
-                code = watch(robot_p, status, max_scans, max_scans / rate + 120)
-            except KeyboardInterrupt:
-                # Cut short: stop the robot gracefully (it writes its records), keep what we have
-                print("\ninterrupted: stopping the robot and writing what was measured", flush=True)
-                cut_short = True
-                code = robot_p.stop()
-            if code != 0:
-                print(f"the robot exited with code {code}:\n" + robot_p.tail())
-            reply = fetch_map(session, keys, robot.robot_id)
-            status.close()
-    finally:
-        if robot_p is not None:
-            robot_p.stop()
-        link_p.stop()
-        edge_p.stop()
+    run = run_offload(out, edge, robot, exp.trace, ["--seed", str(exp.seed)], max_scans,
+                      max_scans / rate + 120, keep_interrupted=True)
+    reply = run.reply
     wall_start = link_clock_start(out / "link.log")
     recs = _read_scans(out / "robot_scans.csv")
     _with_link_rate(recs, trace, wall_start)
@@ -253,7 +198,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
         ref_seqs, ref_poses, reference = _reference(source, [int(r["index"]) for r in recs], is_sim, gt)
         err = trajectory_error(reply.seqs, reply.poses, ref_seqs, ref_poses)
     row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"))
-    row["cut_short"] = cut_short
+    row["cut_short"] = run.cut_short
     return row
 
 

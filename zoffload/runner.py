@@ -8,12 +8,14 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from zoffload import wire
-from zoffload.config import ZenohSettings, open_session
+from zoffload.config import EdgeSettings, RobotSettings, ZenohSettings, open_session, write_effective
 from zoffload.keys import Keys
+from zoffload.net import free_tcp_port, loopback_endpoint
 
 
 class Spawned:
@@ -129,3 +131,86 @@ def fetch_map(session: Any, keys: Keys, robot: str, timeout: float = 20.0) -> wi
             assert isinstance(msg, wire.MapReply)
             return msg
     return None
+
+
+# The robot's TCP send buffer behind the emulator: small, so a slow link reaches Zenoh's congestion
+# control instead of hiding megabytes in the kernel.
+ROBOT_SNDBUF = 65536
+
+
+class StartError(RuntimeError):
+    """The edge process did not start or did not announce itself."""
+
+
+@dataclass
+class OffloadRun:
+    robot_code: int
+    reply: wire.MapReply | None
+    cut_short: bool
+
+
+def loopback_zenoh(**kw: Any) -> ZenohSettings:
+    """Session settings for local runs: explicit endpoints, no multicast scouting, no shared memory
+    (same-host shared memory would carry payloads around any emulated link)."""
+    return ZenohSettings(multicast_scouting=False, shared_memory=False, **kw)
+
+
+def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
+                link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False
+                ) -> OffloadRun:
+    """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
+
+    The edge listens; the robot connects through the emulator in client mode (a peer could learn
+    the edge's own address and connect around it); this process watches over a direct session and
+    fetches the map at the end. The Zenoh settings of ``edge`` and ``robot`` are set here. With
+    ``keep_interrupted``, Ctrl-C stops the robot gracefully (it writes its records) and the run
+    returns with ``cut_short``; otherwise the interrupt propagates after the processes are stopped.
+    """
+    edge_port, link_port = free_tcp_port(), free_tcp_port()
+    edge = edge.model_copy(update={"zenoh": loopback_zenoh(listen=[loopback_endpoint(edge_port)])})
+    direct = loopback_zenoh(connect=[loopback_endpoint(edge_port)])
+    robot_z = direct if trace is None else loopback_zenoh(
+        mode="client", connect=[loopback_endpoint(link_port)],
+        cfg=[f"transport/link/tcp/so_sndbuf:{ROBOT_SNDBUF}"])
+    robot = robot.model_copy(update={"zenoh": robot_z})
+    write_effective(edge, out / "edge.yaml")
+    write_effective(robot, out / "robot.yaml")
+    keys = Keys(robot.namespace)
+    edge_p = Spawned("edge", ["edge", "--settings", str(out / "edge.yaml")], out / "edge.log")
+    link_p = None
+    if trace is not None:
+        link_p = Spawned("link", ["link", "--trace", trace, "--listen-port", str(link_port), "--target",
+                                  f"127.0.0.1:{edge_port}", "--report", str(out / "link.csv"), *link_args],
+                         out / "link.log")
+    robot_p: Spawned | None = None
+    try:
+        session = connect_when_listening(direct, edge_p)
+        if session is None:
+            raise StartError("the edge did not start:\n" + edge_p.tail())
+        with session:
+            status = StatusWatcher(session, keys, robot.robot_id)
+            if not wait_token(session, keys.any_edge_alive(), 30):
+                raise StartError("the edge did not come up:\n" + edge_p.tail())
+            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
+            cut_short = False
+            try:
+                code = watch(robot_p, status, total, limit_s)
+            except KeyboardInterrupt:
+                if not keep_interrupted:
+                    raise
+                print("\ninterrupted: stopping the robot and writing what was measured", flush=True)
+                cut_short = True
+                code = robot_p.stop()
+            if code != 0:
+                print(f"\nthe robot exited with code {code}:\n" + robot_p.tail())
+            reply = fetch_map(session, keys, robot.robot_id) if code == 0 or keep_interrupted else None
+            status.close()
+    finally:
+        if robot_p is not None:
+            robot_p.stop()
+        if link_p is not None:
+            link_p.stop()
+        edge_code = edge_p.stop()
+    if edge_code != 0:
+        print(f"the edge exited with code {edge_code}:\n" + edge_p.tail())
+    return OffloadRun(code, reply, cut_short)
