@@ -17,6 +17,7 @@ from typing import Any
 
 from zoffload import __version__
 from zoffload.config import EdgeSettings, RobotSettings, load_settings
+from zoffload.detect.models import ModelError
 from zoffload.errors import ConfigError, ExitCode, ZenohSessionError
 from zoffload.lifecycle import StopSignal, setup_logging
 from zoffload.sources.base import ScanSourceError
@@ -164,6 +165,50 @@ def _run_experiment(a: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def _detect_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--images", default="coco-clips",
+                   help="camera source: coco-clips[:FOLDER] (default, has ground truth), a folder or a video")
+    p.add_argument("--max-frames", type=int, default=500, help="camera frames per run (default 500 = 20 s)")
+    p.add_argument("--cpu-quota", type=float, default=0.5,
+                   help="cores the robot process may use (CFS quota; default 0.5; 0 = no quota)")
+    p.add_argument("--encoding", choices=["bgr8", "jpeg"], default="bgr8",
+                   help="frame encoding (default bgr8)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-level", default="WARNING")
+
+
+def _detect_kw(a: argparse.Namespace) -> dict[str, Any]:
+    return {"images": a.images, "max_frames": a.max_frames, "cpu_quota": a.cpu_quota or None,
+            "encoding": a.encoding, "seed": a.seed}
+
+
+def _run_detect(a: argparse.Namespace) -> int:
+    from zoffload.experiment_detect import DetectExperiment, run_detect_experiment, summary_line
+    from zoffload.link.trace import TraceError, load_trace
+    from zoffload.policy.offload import make_strategy
+
+    try:
+        make_strategy(a.strategy)
+        if a.trace != "none":
+            load_trace(a.trace)
+    except (ValueError, TraceError) as exc:
+        raise ConfigError(str(exc)) from exc
+    row = run_detect_experiment(DetectExperiment(trace=a.trace, strategy=a.strategy, out=a.out,
+                                                 **_detect_kw(a)))
+    print(summary_line(row))
+    return ExitCode.OK
+
+
+def _run_detect_sweep(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from zoffload.experiment_detect import SWEEP_STRATEGIES, SWEEP_TRACES, run_sweep
+
+    run_sweep(Path(a.out), a.traces or SWEEP_TRACES, a.strategies or SWEEP_STRATEGIES, **_detect_kw(a))
+    print(f"sweep written to {a.out}; render it with: zoffload report {a.out}/*/*")
+    return ExitCode.OK
+
+
 def _run_report(a: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -200,7 +245,10 @@ def _guard(fn: Callable[[argparse.Namespace], int], a: argparse.Namespace) -> in
         log.error("configuration error: %s", exc)
         return ExitCode.CONFIG
     except ScanSourceError as exc:
-        log.error("scan data error: %s", exc)
+        log.error("data error: %s", exc)
+        return ExitCode.DATA
+    except ModelError as exc:
+        log.error("model error: %s", exc)
         return ExitCode.DATA
     except ZenohSessionError as exc:
         log.error("%s", exc)
@@ -251,6 +299,21 @@ def build_parser() -> argparse.ArgumentParser:
     es.add_argument("--seed", type=int, default=0)
     es.add_argument("--log-level", default="WARNING")
     es.set_defaults(func=_run_experiment)
+    ed = exs.add_parser("detect", help="camera frames robot/edge, the offloading thesis' Tables 6.3-6.5")
+    ed.add_argument("--trace", required=True,
+                    help="'none' (unconstrained loopback), a shipped trace (detect-capped, "
+                    "wifi-locations) or a CSV file")
+    ed.add_argument("--strategy", required=True, help="robot, edge, ratio:R, thesis or dynamic")
+    ed.add_argument("--out", required=True, help="results folder of this run")
+    _detect_arguments(ed)
+    ed.set_defaults(func=_run_detect)
+    sw = exs.add_parser("detect-sweep", help="the thesis' grid: strategies x links, one folder each")
+    sw.add_argument("--out", required=True, help="sweep folder (one sub-folder per link and strategy)")
+    sw.add_argument("--traces", nargs="+", default=None, help="default: none detect-capped wifi-locations")
+    sw.add_argument("--strategies", nargs="+", default=None,
+                    help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic")
+    _detect_arguments(sw)
+    sw.set_defaults(func=_run_detect_sweep)
     rp = sub.add_parser("report", help="tables and plots from experiment folders")
     rp.add_argument("runs", nargs="+", help="experiment run folders")
     rp.add_argument("--out", help="report folder (default: the common parent of the runs)")

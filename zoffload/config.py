@@ -60,10 +60,52 @@ class MapperSettings(_Strict):
     queue: int = Field(default=2, ge=1)  # scans waiting per robot before the oldest is dropped
 
 
+class DetectorSettings(_Strict):
+    """The edge's object detector. ``enabled`` None = on when the model file can be found."""
+
+    enabled: bool | None = None
+    model: Literal["nanodet-m", "picodet-s", "yolox-nano"] = "picodet-s"
+    model_path: str | None = None
+    model_url: str | None = None  # optional download, checked against the pinned SHA-256
+    threads: int = Field(default=0, ge=0)  # onnxruntime intra-op threads; 0 = its default
+    queue: int = Field(default=2, ge=1)  # frames waiting per robot before the oldest is dropped
+    batch: int = Field(default=4, ge=1)  # frames taken per pass when they queue up
+
+
+class PerceptionSettings(_Strict):
+    """The robot's camera pipeline: where each frame is detected, and the local detector."""
+
+    strategy: str = "dynamic"  # robot | edge | ratio:R | thesis | dynamic
+    local_model: Literal["nanodet-m", "picodet-s", "yolox-nano"] = "nanodet-m"
+    local_model_path: str | None = None
+    local_threads: int = Field(default=1, ge=0)  # onnxruntime threads of the local detector
+    fps: float | None = Field(default=None, gt=0)  # None: the source's rate (25 for coco-clips)
+    max_frames: int | None = Field(default=None, ge=1)
+    encoding: Literal["bgr8", "jpeg"] = "bgr8"
+    jpeg_quality: int = Field(default=80, ge=1, le=100)
+    cpu_max: float = Field(default=90.0, gt=0)  # the rule's CPU bound (process %, one core = 100)
+    bw_max_mbps: float | None = Field(default=None, gt=0)  # the rule's bandwidth bound; None = none
+    max_in_flight: int = Field(default=2, ge=0)  # dynamic: unanswered edge frames before local
+    reply_timeout: float = Field(default=0.5, gt=0)  # an edge frame unanswered this long is lost
+    fallback_after: float = Field(default=0.2, gt=0)  # oldest reply overdue this long → fallback
+    probe_period: float = Field(default=0.5, gt=0)  # in fallback: one frame to the edge this often
+    resume_after: int = Field(default=3, ge=1)  # consecutive prompt probe replies to resume
+    cpu_quota: float | None = Field(default=None, gt=0)  # cores the robot process may use (CFS)
+
+    @field_validator("strategy")
+    @classmethod
+    def _strategy(cls, v: str) -> str:
+        from zoffload.policy.offload import make_strategy
+
+        make_strategy(v)  # ValueError names the accepted forms
+        return v
+
+
 class RobotSettings(_Strict):
     robot_id: str = "robot1"
     namespace: str = DEFAULT_NAMESPACE
-    scans: str = "sim"  # "sim" or a folder of .bin / .pcd / .ply scans
+    scans: str = "sim"  # "sim", a folder of .bin / .pcd / .ply scans, or "none"
+    images: str | None = None  # camera: "coco-clips[:FOLDER]", an image folder or a video file
     replay: Replay = "once"
     rate_hz: float | None = Field(default=None, gt=0)  # None: the source's own rate
     max_scans: int | None = Field(default=None, ge=1)
@@ -78,6 +120,7 @@ class RobotSettings(_Strict):
     status_period: float = Field(default=1.0, gt=0)
     wait_edge: float = Field(default=5.0, ge=0)  # seconds to wait for an edge at start
     out_dir: str | None = None
+    perception: PerceptionSettings = Field(default_factory=PerceptionSettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
 
     @field_validator("robot_id", "namespace")
@@ -97,6 +140,7 @@ class EdgeSettings(_Strict):
     edge_id: str = "edge1"
     namespace: str = DEFAULT_NAMESPACE
     mapper: MapperSettings = Field(default_factory=MapperSettings)
+    detector: DetectorSettings = Field(default_factory=DetectorSettings)
     map_dir: str | None = None  # export every robot's map here on shutdown
     map_format: Literal["ply", "pcd"] = "ply"
     status_period: float = Field(default=1.0, gt=0)

@@ -7,6 +7,8 @@ key                                   primitive   payload
 ====================================  ==========  =====================================================
 ``<ns>/data/<robot>/scan``            pub/sub     ``wire.Scan``  robot → edge, congestion control DROP
 ``<ns>/data/<robot>/scan_ack``        pub/sub     ``wire.ScanAck`` edge → robot, one per scan
+``<ns>/data/<robot>/frame``           pub/sub     ``wire.Frame`` robot → edge detector, DROP
+``<ns>/data/<robot>/detections``      pub/sub     ``wire.DetectionsMsg`` edge → robot, one per frame
 ``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
 ``<ns>/ctrl/<robot>/ping``            queryable   ``wire.Pong`` answered by the edge (liveness RTT)
 ``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz
@@ -52,6 +54,15 @@ class Keys:
 
     def all_scans(self) -> str:
         return f"{self.ns}/data/*/scan"
+
+    def frame(self, robot: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/frame"
+
+    def detections(self, robot: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/detections"
+
+    def all_frames(self) -> str:
+        return f"{self.ns}/data/*/frame"
 
     # Control (queryables)
     def map(self, robot: str) -> str:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -94,7 +95,20 @@ def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
     )
 
 
-def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float) -> int:
+def frames_line(st: dict[str, float], elapsed: float, total: int) -> str:
+    """Progress of a camera run (the image offloader's status values)."""
+    return (
+        f"[{elapsed:5.1f} s] frames {int(st.get('frames_in', 0))}/{total} | local "
+        f"{int(st.get('local_done', 0))}, edge {int(st.get('edge_done', 0))}, dropped "
+        f"{int(st.get('dropped_camera', 0) + st.get('dropped_stale', 0))}, "
+        f"lost {int(st.get('edge_lost', 0))} | "
+        f"CPU {st.get('cpu_process', float('nan')):.0f} % | {st.get('mbps_out', float('nan')):.0f} Mbps"
+        f"{' | FALLBACK' if st.get('fallback') else ''}"
+    )
+
+
+def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float,
+          line: Callable[[dict[str, float], float, int], str] = progress_line) -> int:
     """Show progress until the robot process exits; returns its exit code."""
     tty = sys.stdout.isatty()
     start = time.monotonic()
@@ -102,11 +116,11 @@ def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float) -
     while robot_p.proc.poll() is None:
         time.sleep(0.25)
         elapsed = time.monotonic() - start
-        line = progress_line(status.values, elapsed, total)
+        text = line(status.values, elapsed, total)
         if tty:
-            print("\r" + line.ljust(120), end="", flush=True)
+            print("\r" + text.ljust(120), end="", flush=True)
         elif time.monotonic() >= next_plain:
-            print(line, flush=True)
+            print(text, flush=True)
             next_plain = time.monotonic() + 5
         if elapsed > limit_s:
             print("\nthe robot did not finish in time; stopping it")
@@ -156,8 +170,9 @@ def loopback_zenoh(**kw: Any) -> ZenohSettings:
 
 
 def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
-                link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False
-                ) -> OffloadRun:
+                link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
+                line: Callable[[dict[str, float], float, int], str] = progress_line,
+                fetch: bool = True) -> OffloadRun:
     """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
 
     The edge listens; the robot connects through the emulator in client mode (a peer could learn
@@ -194,7 +209,7 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
             robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
             cut_short = False
             try:
-                code = watch(robot_p, status, total, limit_s)
+                code = watch(robot_p, status, total, limit_s, line)
             except KeyboardInterrupt:
                 if not keep_interrupted:
                     raise
@@ -203,7 +218,8 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
                 code = robot_p.stop()
             if code != 0:
                 print(f"\nthe robot exited with code {code}:\n" + robot_p.tail())
-            reply = fetch_map(session, keys, robot.robot_id) if code == 0 or keep_interrupted else None
+            reply = (fetch_map(session, keys, robot.robot_id)
+                     if fetch and (code == 0 or keep_interrupted) else None)
             status.close()
     finally:
         if robot_p is not None:

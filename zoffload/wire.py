@@ -90,6 +90,42 @@ class ScanAck(Message):
 
 
 @dataclass(frozen=True)
+class Frame(Message):
+    """One camera frame, robot → edge detector. ``encoding`` "bgr8" (raw, ``height*width*3``
+    bytes) or "jpeg"."""
+
+    TYPE: ClassVar[str] = "frame"
+    robot: str
+    seq: int
+    send_stamp: float  # robot monotonic clock, echoed back in the detections
+    capture_stamp: float  # robot monotonic clock when the camera delivered the frame
+    encoding: str
+    width: int
+    height: int
+    data: np.ndarray = _array(ArraySpec("|u1", (-1,)))
+
+
+@dataclass(frozen=True)
+class DetectionsMsg(Message):
+    """The edge detector's answer to one frame; boxes in the frame's pixels (x1, y1, x2, y2)."""
+
+    TYPE: ClassVar[str] = "detections"
+    robot: str
+    seq: int
+    send_stamp: float  # echo of Frame.send_stamp (robot clock)
+    edge: str
+    model: str
+    status: str  # "ok" | "error" (undecodable frame) | "dropped" (edge overloaded)
+    infer_time: float  # edge inference [s]
+    queue_time: float  # waiting on the edge before inference [s]
+    batch: int  # frames served in the same pass as this one
+    detail: str = ""
+    boxes: np.ndarray = _array(ArraySpec("<f4", (-1, 4)))
+    scores: np.ndarray = _array(ArraySpec("<f4", (-1,)))
+    classes: np.ndarray = _array(ArraySpec("<i4", (-1,)))
+
+
+@dataclass(frozen=True)
 class MapReply(Message):
     """A robot's registered map and trajectory, answered by the edge's map queryable."""
 
@@ -121,7 +157,9 @@ class Status(Message):
     values: dict[str, float] = field(default_factory=dict)
 
 
-MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Scan, ScanAck, MapReply, Pong, Status)}
+MESSAGES: dict[str, type[Message]] = {
+    m.TYPE: m for m in (Scan, ScanAck, Frame, DetectionsMsg, MapReply, Pong, Status)
+}
 
 _SCALARS: dict[Any, tuple[type, ...]] = {
     "int": (int,),

@@ -4,6 +4,8 @@ Inputs:  ``<ns>/data/*/scan`` (wire.Scan).
 Outputs: ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck, one per scan, also for scans it had to
          drop), ``<ns>/status/edge/<edge>`` (wire.Status, 1 Hz), liveliness ``<ns>/alive/edge/<edge>``.
 Queries: ``<ns>/ctrl/<robot>/map`` (wire.MapReply), ``<ns>/ctrl/<robot>/ping`` (wire.Pong).
+Detector: ``<ns>/data/*/frame`` → ``<ns>/data/<robot>/detections`` (edge/detector.py), when the
+         configured model can be found (or ``detector.enabled: true``, then a missing model is fatal).
 
 The Zenoh callback only stamps, decodes and queues; registration runs on one worker thread per
 robot, so a slow mapper never blocks reception and inter-arrival T stays an arrival-time measure.
@@ -63,6 +65,7 @@ class EdgeDaemon:
         self.counters: Counter[str] = Counter()
         self._lock = threading.Lock()
         self.session: Any = None
+        self.detector: Any = None
 
     # Startup
     def start(self) -> None:
@@ -80,8 +83,28 @@ class EdgeDaemon:
         self._status_pub = self.session.declare_publisher(
             self.keys.edge_status(s.edge_id), congestion_control=zenoh.CongestionControl.DROP
         )
+        self._start_detector()
         log.info("edge %s up (zenoh %s, listen=%s, connect=%s)", s.edge_id, s.zenoh.mode,
                  s.zenoh.listen, s.zenoh.connect)
+
+    def _start_detector(self) -> None:
+        d = self.settings.detector
+        if d.enabled is False:
+            return
+        from zoffload.detect.detector import Detector
+        from zoffload.detect.models import ModelError
+        from zoffload.edge.detector import DetectorService
+
+        try:
+            model = Detector(d.model, d.model_path, threads=d.threads, url=d.model_url)
+        except ModelError as exc:
+            if d.enabled:
+                raise
+            log.warning("object detector off: %s", exc)
+            return
+        self.detector = DetectorService(model, self.session, self.keys, self.settings.edge_id,
+                                        queue=d.queue, batch=d.batch)
+        self.detector.start()
 
     # Reception (Zenoh callback thread: stamp, decode, queue; nothing slow)
     def _on_scan(self, sample: Any) -> None:
@@ -216,6 +239,8 @@ class EdgeDaemon:
         for rid, rs in list(self.robots.items()):
             values[f"{rid}.map_points"] = float(rs.mapper.map_points if rs.mapper else 0)
             values[f"{rid}.queue"] = float(len(rs.queue))
+        if self.detector is not None:
+            values.update(self.detector.status())
         return wire.Status(source="edge", id=self.settings.edge_id, stamp=time.time(), values=values)
 
     def run(self) -> None:
@@ -226,6 +251,8 @@ class EdgeDaemon:
     # Shutdown
     def shutdown(self) -> None:
         self.stop.set()
+        if self.detector is not None:
+            self.detector.stop()
         for rs in list(self.robots.values()):
             if rs.worker:
                 rs.worker.join(timeout=5)

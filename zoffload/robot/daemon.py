@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 
 from zoffload import wire
 from zoffload.config import RobotSettings, open_session, write_effective
+from zoffload.errors import ConfigError
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
 from zoffload.policy.onnx_scale import load_scale_policy
@@ -61,12 +63,14 @@ class RobotDaemon:
         self._last_ping_rtt = float("nan")
 
     # Startup
-    def start(self) -> None:
+    def start(self, session: Any = None) -> None:
+        """Open the Zenoh session, or share ``session`` (then the caller closes it)."""
         import zenoh
 
         s = self.settings
         warmup()  # compile the voxel kernel before the first scan, not during it
-        self.session = open_session(s.zenoh)
+        self._owns_session = session is None
+        self.session = session if session is not None else open_session(s.zenoh)
         self._token = self.session.liveliness().declare_token(self.keys.robot_alive(s.robot_id))
         self._edge_sub = self.session.liveliness().declare_subscriber(
             self.keys.any_edge_alive(), self._on_edge_liveliness, history=True
@@ -276,20 +280,71 @@ class RobotDaemon:
 
     # Shutdown
     def shutdown(self) -> None:
-        if self.session is not None:
+        if self.session is not None and getattr(self, "_owns_session", True):
             self.session.close()
-            self.session = None
+        self.session = None
 
 
 def run(settings: RobotSettings, stop: StopSignal | None = None) -> dict[str, Any]:
-    """The Python API of ``zoffload-robot``: start, replay until done or stopped, write results."""
-    daemon = RobotDaemon(settings, stop=stop)
-    daemon.start()
+    """The Python API of ``zoffload-robot``: start, replay until done or stopped, write results.
+
+    Scans (``scans``, unless "none") and camera frames (``images``) run side by side on one
+    Zenoh session; the scan loop keeps the main thread, the image offloader its own. The returned
+    metrics are the scan daemon's, with the image offloader's under ``vision``."""
+    from zoffload.robot.vision import ImageOffloader
+
+    stop = stop or StopSignal()
+    if settings.scans == "none" and not settings.images:
+        raise ConfigError("nothing to do: scans is 'none' and no images are configured")
+    quota = None
+    if settings.perception.cpu_quota:
+        from zoffload.robot.quota import apply_cpu_quota
+
+        quota = apply_cpu_quota(settings.perception.cpu_quota)
+        if quota == "threads":
+            n = max(1, math.ceil(settings.perception.cpu_quota))
+            settings = settings.model_copy(update={"perception": settings.perception.model_copy(
+                update={"local_threads": min(settings.perception.local_threads or n, n)})})
+    daemon = RobotDaemon(settings, stop=stop) if settings.scans != "none" else None
+    vision = ImageOffloader(settings, None, stop) if settings.images else None
+    session = open_session(settings.zenoh)
+    metrics: dict[str, Any] = {}
     try:
-        metrics = daemon.run()
+        if daemon is not None:
+            daemon.start(session)
+        else:
+            alive = Keys(settings.namespace).robot_alive(settings.robot_id)
+            token = session.liveliness().declare_token(alive)
+        vthread = None
+        if vision is not None:
+            vision.session = session
+            vision.start()
+            if daemon is not None:
+                vthread = threading.Thread(target=vision.run, name="vision", daemon=True)
+                vthread.start()
+            else:
+                vision.run()
+        if daemon is not None:
+            metrics = daemon.run()
+        if vthread is not None:
+            vthread.join()
+        if vision is not None:
+            metrics["vision"] = vision.metrics()
+            metrics["vision"]["cpu_quota"] = quota
         if settings.out_dir:
-            daemon.write_results(Path(settings.out_dir))
+            if daemon is not None:
+                daemon.write_results(Path(settings.out_dir))
+            if vision is not None:
+                vision.write_results(Path(settings.out_dir))
+                write_effective(settings, Path(settings.out_dir) / "robot_config.yaml")
     finally:
-        daemon.shutdown()
-    log.info("robot done: %s", json.dumps(metrics["balance"]))
+        if daemon is not None:
+            daemon.shutdown()
+        elif "token" in locals():
+            token.undeclare()
+        session.close()
+    if daemon is not None:
+        log.info("robot done: %s", json.dumps(metrics["balance"]))
+    if vision is not None:
+        log.info("camera done: %s", json.dumps(metrics["vision"]["balance"]))
     return metrics

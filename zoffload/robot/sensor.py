@@ -1,5 +1,6 @@
-"""A sensor thread that replays a scan source at its rate, like a real driver: it never waits for
-the consumer. Only the newest scan is kept; a scan overwritten before it was taken is counted."""
+"""A sensor thread that replays a source (LiDAR scans or camera frames) at its rate, like a real
+driver: it never waits for the consumer. Only the newest reading is kept; one overwritten before it
+was taken is counted."""
 
 from __future__ import annotations
 
@@ -7,22 +8,33 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any, Protocol
 
-from zoffload.sources.base import ScanFrame, ScanSource, replay_order
+from zoffload.sources.base import replay_order
 
 log = logging.getLogger("zoffload.robot.sensor")
+
+
+class FrameSource(Protocol):
+    """Anything with a length and frames by index: scan sources and image sources alike."""
+
+    name: str
+
+    def __len__(self) -> int: ...
+
+    def read(self, index: int) -> Any: ...
 
 
 @dataclass(frozen=True)
 class Reading:
     seq: int  # 0, 1, 2, ... over the whole replay
-    frame: ScanFrame
+    frame: Any  # a ScanFrame or an ImageFrame
     capture_stamp: float  # robot wall clock when the scan was complete
 
 
 class SensorThread:
-    def __init__(self, source: ScanSource, rate_hz: float, mode: str = "once",
-                 max_scans: int | None = None) -> None:
+    def __init__(self, source: FrameSource, rate_hz: float, mode: str = "once",
+                 max_scans: int | None = None, name: str = "sensor") -> None:
         self.source = source
         self.period = 1.0 / rate_hz
         self.mode = mode
@@ -34,7 +46,7 @@ class SensorThread:
         self._stop = threading.Event()
         self._slot: Reading | None = None
         self._cond = threading.Condition()
-        self._thread = threading.Thread(target=self._run, name="sensor", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
         self._thread.start()
@@ -64,7 +76,7 @@ class SensorThread:
                     self._cond.notify()
         except Exception as exc:  # a source failing mid-run ends the replay, it is logged
             self.read_errors += 1
-            log.error("scan source failed: %s", exc)
+            log.error("%s source failed: %s", self._thread.name, exc)
         finally:
             self.finished.set()
             with self._cond:

@@ -1,0 +1,214 @@
+"""ONNX detectors (NanoDet-m, PP-PicoDet-S, YOLOX-nano) through onnxruntime, with their decoders.
+
+Every detector takes a BGR ``uint8`` image of any size and returns ``Detections`` in that image's
+pixel coordinates, after the thesis' post-processing: confidence 0.25, class-aware NMS at IoU 0.45
+(OpenCV's ``NMSBoxesBatched``), at most 1000 detections.
+
+Decoders (input/output layouts checked against the graphs with onnxruntime):
+
+* ``gfl`` (NanoDet-m 320, PicoDet-S 416): per stride, class scores ``[1, N, 80]`` already through a
+  sigmoid and box distributions ``[1, N, 4*8]`` (left, top, right, bottom; 8 bins each). The
+  distance of each side is the softmax-weighted bin index times the stride, measured from the
+  cell's centre ``((x + 0.5)·s, (y + 0.5)·s)``. Input: the image stretched to the square.
+* ``yolox``: ``[1, 3549, 85]`` raw grid outputs for strides 8/16/32 (centre offsets, log sizes,
+  objectness, class scores: already sigmoid in this export); score = objectness × class score.
+  Input: letterboxed top-left at 416 with pad value 114, BGR 0-255.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from zoffload.detect.models import ModelError, ModelSpec, resolve, spec
+
+CONF = 0.25
+NMS_IOU = 0.45
+MAX_DET = 1000
+
+# Preprocessing per model (mean and std in the network's channel order)
+_NANODET_MEAN = np.array([103.53, 116.28, 123.675], np.float32)
+_NANODET_STD = np.array([57.375, 57.12, 58.395], np.float32)
+_PICODET_MEAN = np.array([123.675, 116.28, 103.53], np.float32)
+_PICODET_STD = np.array([58.395, 57.12, 57.375], np.float32)
+
+
+@dataclass
+class Detections:
+    """Boxes ``[x1, y1, x2, y2]`` in the source image's pixels, scores, COCO class ids (0 = person)."""
+
+    boxes: np.ndarray  # (n, 4) float32
+    scores: np.ndarray  # (n,) float32
+    classes: np.ndarray  # (n,) int32
+
+    @staticmethod
+    def empty() -> Detections:
+        return Detections(np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32))
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+    def of_class(self, cls: int) -> Detections:
+        keep = self.classes == cls
+        return Detections(self.boxes[keep], self.scores[keep], self.classes[keep])
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, conf: float = CONF,
+        iou: float = NMS_IOU, max_det: int = MAX_DET) -> Detections:
+    """Confidence filter then class-aware NMS, best first, at most ``max_det``."""
+    import cv2
+
+    keep = scores >= conf
+    boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
+    if len(scores) == 0:
+        return Detections.empty()
+    xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]]).astype(np.float32)
+    idx = np.asarray(cv2.dnn.NMSBoxesBatched(xywh.tolist(), scores.astype(float).tolist(),
+                                             classes.astype(int).tolist(), conf, iou), np.int64).ravel()
+    idx = idx[np.argsort(-scores[idx], kind="stable")][:max_det]
+    return Detections(boxes[idx].astype(np.float32), scores[idx].astype(np.float32),
+                      classes[idx].astype(np.int32))
+
+
+def _softmax(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    e = np.exp(x - x.max(axis=axis, keepdims=True))
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def decode_gfl(cls_maps: list[np.ndarray], reg_maps: list[np.ndarray], strides: list[int], size: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate boxes (network-input pixels), best score and class per anchor point."""
+    all_boxes, all_scores, all_cls = [], [], []
+    for cls_m, reg_m, s in zip(cls_maps, reg_maps, strides, strict=True):
+        n_side = int(np.ceil(size / s))
+        cls_m, reg_m = cls_m.reshape(-1, cls_m.shape[-1]), reg_m.reshape(-1, 4, reg_m.shape[-1] // 4)
+        if cls_m.shape[0] != n_side * n_side:
+            raise ModelError(f"stride {s}: {cls_m.shape[0]} anchors for a {n_side}x{n_side} grid")
+        best = cls_m.argmax(axis=1)
+        score = cls_m[np.arange(len(best)), best]
+        keep = score >= CONF  # decode only what can survive the confidence filter
+        if not keep.any():
+            continue
+        ys, xs = np.divmod(np.nonzero(keep)[0], n_side)
+        cx, cy = (xs + 0.5) * s, (ys + 0.5) * s
+        bins = np.arange(reg_m.shape[-1], dtype=np.float32)
+        dist = (_softmax(reg_m[keep]) * bins).sum(-1) * s  # (k, 4): left, top, right, bottom
+        all_boxes.append(np.column_stack([cx - dist[:, 0], cy - dist[:, 1],
+                                          cx + dist[:, 2], cy + dist[:, 3]]))
+        all_scores.append(score[keep])
+        all_cls.append(best[keep])
+    if not all_boxes:
+        return np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64)
+    return np.concatenate(all_boxes), np.concatenate(all_scores), np.concatenate(all_cls)
+
+
+def decode_yolox(out: np.ndarray, size: int, strides: tuple[int, ...] = (8, 16, 32)
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    out = out.reshape(-1, out.shape[-1])
+    grids, exp_strides = [], []
+    for s in strides:
+        n = size // s
+        ys, xs = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        grids.append(np.column_stack([xs.ravel(), ys.ravel()]))
+        exp_strides.append(np.full((n * n, 1), s))
+    grid, stride = np.concatenate(grids), np.concatenate(exp_strides)
+    if len(grid) != len(out):
+        raise ModelError(f"YOLOX output has {len(out)} rows, {len(grid)} expected at {size} px")
+    cls = out[:, 5:]
+    best = cls.argmax(axis=1)
+    score = out[:, 4] * cls[np.arange(len(best)), best]
+    keep = score >= CONF
+    xy = (out[keep, :2] + grid[keep]) * stride[keep]
+    wh = np.exp(out[keep, 2:4]) * stride[keep]
+    boxes = np.column_stack([xy - wh / 2, xy + wh / 2])
+    return boxes, score[keep], best[keep]
+
+
+class Detector:
+    """One ONNX detector in an onnxruntime session (``threads`` intra-op threads; 0 = ORT default)."""
+
+    def __init__(self, name: str, path: str | None = None, threads: int = 0, url: str | None = None) -> None:
+        import onnxruntime as ort
+
+        self.spec: ModelSpec = spec(name)
+        self.path: Path = resolve(name, path, url)
+        opts = ort.SessionOptions()
+        opts.log_severity_level = 3  # the YOLOX export's initializer warnings are noise
+        if threads:
+            opts.intra_op_num_threads = threads
+            opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for a bad file
+            raise ModelError(f"detector {name}: {self.path} is not a loadable ONNX model: {exc}") from exc
+        inp = self.session.get_inputs()[0]
+        self.input_name = inp.name
+        shape = inp.shape
+        if len(shape) != 4 or shape[2] != self.spec.size or shape[3] != self.spec.size:
+            raise ModelError(f"detector {name}: input {shape}, expected [1, 3, {self.spec.size}, "
+                             f"{self.spec.size}]")
+        outs = self.session.get_outputs()
+        self.output_names = [o.name for o in outs]
+        if self.spec.decoder == "gfl":
+            cls_outs = [o for o in outs if o.shape[-1] == 80]
+            reg_outs = [o for o in outs if o.shape[-1] == 32]
+            if not cls_outs or len(cls_outs) != len(reg_outs):
+                raise ModelError(f"detector {name}: outputs {[o.shape for o in outs]} are not a GFL head")
+            self._cls = [o.name for o in sorted(cls_outs, key=lambda o: -o.shape[1])]
+            self._reg = [o.name for o in sorted(reg_outs, key=lambda o: -o.shape[1])]
+            n_anchors = [o.shape[1] for o in sorted(cls_outs, key=lambda o: -o.shape[1])]
+            by_count = {int(np.ceil(self.spec.size / st)) ** 2: st for st in (8, 16, 32, 64, 128)}
+            if any(n not in by_count for n in n_anchors):
+                raise ModelError(f"detector {name}: anchor counts {n_anchors} fit no stride set")
+            self._strides = [by_count[n] for n in n_anchors]
+        self.last_infer_time = 0.0
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network input and the affine map back to source pixels: ``src = (net - offset) * scale``
+        as a (2, 2) array [[offset_x, offset_y], [scale_x, scale_y]]."""
+        import cv2
+
+        if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+            raise ValueError(f"expected an HxWx3 uint8 BGR image, got {bgr.shape} {bgr.dtype}")
+        size = self.spec.size
+        h, w = bgr.shape[:2]
+        if self.spec.name == "picodet-s":  # PaddleDetection: stretched, keep_ratio False
+            img = cv2.resize(bgr, (size, size), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+            img = (img[:, :, ::-1] - _PICODET_MEAN) / _PICODET_STD
+            back = np.array([[0.0, 0.0], [w / size, h / size]], np.float32)
+            return np.ascontiguousarray(img.transpose(2, 0, 1)[None]), back
+        # Letterbox: YOLOX top-left on grey 114; NanoDet centred on black (its keep_ratio resize)
+        r = min(size / h, size / w)
+        nh, nw = int(round(h * r)), int(round(w * r))
+        yolox = self.spec.decoder == "yolox"
+        canvas = np.full((size, size, 3), 114 if yolox else 0, np.uint8)
+        oy, ox = (0, 0) if yolox else ((size - nh) // 2, (size - nw) // 2)
+        canvas[oy:oy + nh, ox:ox + nw] = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        img = canvas.astype(np.float32)
+        if not yolox:
+            img = (img - _NANODET_MEAN) / _NANODET_STD
+        back = np.array([[ox, oy], [1 / r, 1 / r]], np.float32)
+        return np.ascontiguousarray(img.transpose(2, 0, 1)[None]), back
+
+    def detect(self, bgr: np.ndarray) -> Detections:
+        x, back = self.preprocess(bgr)
+        t0 = time.perf_counter()
+        outs = dict(zip(self.output_names, self.session.run(None, {self.input_name: x}), strict=True))
+        self.last_infer_time = time.perf_counter() - t0
+        if self.spec.decoder == "gfl":
+            boxes, scores, cls = decode_gfl([outs[n] for n in self._cls], [outs[n] for n in self._reg],
+                                            self._strides, self.spec.size)
+        else:
+            boxes, scores, cls = decode_yolox(outs[self.output_names[0]], self.spec.size)
+        det = nms(boxes, scores, cls)
+        h, w = bgr.shape[:2]
+        det.boxes = (det.boxes - np.tile(back[0], 2)) * np.tile(back[1], 2)
+        np.clip(det.boxes, 0, [w, h, w, h], out=det.boxes)
+        return det

@@ -1,0 +1,187 @@
+"""Per-frame offloading strategies: where each camera frame is detected, robot or edge.
+
+* ``robot`` / ``edge``: always local / always offloaded (the thesis' baselines).
+* ``ratio:R``: the thesis' Algorithm 1, offload while offloaded/total < R.
+* ``thesis``: the thesis' Algorithm 2 as published: CPU ≥ cpu_max → edge; outgoing bandwidth ≥
+  bw_max → local; else the side with the lower smoothed RTT, where the edge RTT is averaged over
+  the frames that *came back* (inference + network).
+* ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap —
+  a frame that does not come back within the timeout enters the edge average *as* the timeout,
+  and a frame still in flight counts with its age so far, so an edge that stops answering looks
+  slow at once. The edge is also refused while ``max_in_flight`` frames are unanswered (a window,
+  as TCP's, that keeps the link from queuing frames that will be stale on arrival). While the rule
+  chooses local, one frame in ``probe_every`` still goes to the edge so its estimate stays fresh.
+
+Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from zoffload.monitor import MovingAverage
+
+LOCAL, EDGE = "local", "edge"
+
+
+@dataclass
+class OffloadState:
+    """What the offloader knows when a frame arrives."""
+
+    now: float  # monotonic
+    edge_available: bool  # an edge is present and not in fallback
+    cpu_percent: float = float("nan")  # robot process CPU (one core = 100)
+    mbps_out: float = float("nan")  # robot outgoing bandwidth, smoothed
+    oldest_in_flight_age: float = 0.0  # seconds the oldest unanswered edge frame has waited
+    in_flight: int = 0
+    local_busy: bool = False  # the local detector is working on a frame
+
+
+@dataclass
+class Strategy:
+    name: str = "base"
+    offloaded: int = 0
+    total: int = 0
+
+    def choose(self, st: OffloadState) -> str:
+        raise NotImplementedError
+
+    def decide(self, st: OffloadState) -> str:
+        """``choose``, with the edge replaced by local when no edge is available, and counted."""
+        side = self.choose(st)
+        if side == EDGE and not st.edge_available:
+            side = LOCAL
+        self.total += 1
+        self.offloaded += side == EDGE
+        return side
+
+    # Observations (no-ops for the static strategies)
+    def on_local_result(self, rtt: float) -> None:  # noqa: B027 - optional hook
+        pass
+
+    def on_edge_result(self, rtt: float) -> None:  # noqa: B027 - optional hook
+        pass
+
+    def on_edge_timeout(self, waited: float) -> None:  # noqa: B027 - optional hook
+        pass
+
+
+@dataclass
+class RobotOnly(Strategy):
+    name: str = "robot"
+
+    def choose(self, st: OffloadState) -> str:
+        return LOCAL
+
+
+@dataclass
+class EdgeOnly(Strategy):
+    name: str = "edge"
+
+    def choose(self, st: OffloadState) -> str:
+        return EDGE
+
+
+@dataclass
+class FixedRatio(Strategy):
+    """Algorithm 1: offload while the offloaded share is below ``ratio``."""
+
+    ratio: float = 0.5
+    name: str = "ratio"
+
+    def choose(self, st: OffloadState) -> str:
+        return EDGE if self.offloaded < self.ratio * (self.total + 1) else LOCAL
+
+
+@dataclass
+class ThesisDynamic(Strategy):
+    """Algorithm 2 as the thesis ran it: edge RTT from returned frames only."""
+
+    cpu_max: float = 90.0
+    bw_max_mbps: float = float("inf")
+    window: int = 10
+    name: str = "thesis"
+    rtt_local: MovingAverage = field(default_factory=lambda: MovingAverage(10))
+    rtt_edge: MovingAverage = field(default_factory=lambda: MovingAverage(10))
+
+    def __post_init__(self) -> None:
+        self.rtt_local = MovingAverage(self.window)
+        self.rtt_edge = MovingAverage(self.window)
+
+    def edge_estimate(self, st: OffloadState) -> float:
+        return self.rtt_edge.value
+
+    def choose(self, st: OffloadState) -> str:
+        if math.isfinite(st.cpu_percent) and st.cpu_percent >= self.cpu_max:
+            return EDGE
+        if math.isfinite(st.mbps_out) and st.mbps_out >= self.bw_max_mbps:
+            return LOCAL
+        local, edge = self.rtt_local.value, self.edge_estimate(st)
+        # Until both sides have been measured, try the unmeasured one
+        if math.isnan(edge):
+            return EDGE
+        if math.isnan(local):
+            return LOCAL
+        return EDGE if edge < local else LOCAL
+
+    def on_local_result(self, rtt: float) -> None:
+        self.rtt_local.add(rtt)
+
+    def on_edge_result(self, rtt: float) -> None:
+        self.rtt_edge.add(rtt)
+
+
+@dataclass
+class DeliveryAwareDynamic(ThesisDynamic):
+    """Ours: timeouts count, in-flight age counts, a window bounds the edge queue, local probes."""
+
+    max_in_flight: int = 2
+    probe_every: int = 10
+    name: str = "dynamic"
+    _since_probe: int = 0
+
+    def edge_estimate(self, st: OffloadState) -> float:
+        est = self.rtt_edge.value
+        if st.in_flight and (math.isnan(est) or st.oldest_in_flight_age > est):
+            # The unanswered frame already took this long: the edge is at least this slow
+            est = st.oldest_in_flight_age if math.isnan(est) else max(est, st.oldest_in_flight_age)
+        return est
+
+    def choose(self, st: OffloadState) -> str:
+        side = super().choose(st)
+        if side == EDGE and self.max_in_flight and st.in_flight >= self.max_in_flight:
+            side = LOCAL
+        if side == LOCAL and st.in_flight == 0:
+            self._since_probe += 1
+            if self._since_probe >= self.probe_every:
+                self._since_probe = 0
+                return EDGE
+        else:
+            self._since_probe = 0
+        return side
+
+    def on_edge_timeout(self, waited: float) -> None:
+        self.rtt_edge.add(waited)
+
+
+def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("inf"),
+                  max_in_flight: int = 2) -> Strategy:
+    """``robot``, ``edge``, ``ratio:R`` (0 ≤ R ≤ 1), ``thesis`` or ``dynamic``; ValueError otherwise."""
+    if spec == "robot":
+        return RobotOnly()
+    if spec == "edge":
+        return EdgeOnly()
+    if spec.startswith("ratio:"):
+        try:
+            r = float(spec.split(":", 1)[1])
+        except ValueError:
+            raise ValueError(f"strategy {spec!r}: ratio:R needs a number") from None
+        if not 0.0 <= r <= 1.0:
+            raise ValueError(f"strategy {spec!r}: the ratio must be within [0, 1]")
+        return FixedRatio(ratio=r, name=f"ratio:{r:g}")
+    if spec == "thesis":
+        return ThesisDynamic(cpu_max=cpu_max, bw_max_mbps=bw_max_mbps)
+    if spec == "dynamic":
+        return DeliveryAwareDynamic(cpu_max=cpu_max, bw_max_mbps=bw_max_mbps, max_in_flight=max_in_flight)
+    raise ValueError(f"unknown offloading strategy {spec!r} (robot, edge, ratio:R, thesis, dynamic)")
