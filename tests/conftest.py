@@ -10,6 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("ZOFFLOAD_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti360-hdl64" / "velodyne"
+COCO = DATA / "coco-person-dev"
+MODELS = DATA / "models"
 
 
 @pytest.fixture(scope="session")
@@ -24,3 +26,17 @@ def free_port() -> int:
     from zoffload.net import free_tcp_port
 
     return free_tcp_port()
+
+
+@pytest.fixture(scope="session")
+def coco_dir() -> Path:
+    if not (COCO / "person_gt.json").is_file():
+        pytest.skip(f"COCO person images not found at {COCO} (set ZOFFLOAD_DATA)")
+    return COCO
+
+
+@pytest.fixture(scope="session")
+def models_dir() -> Path:
+    if not (MODELS / "nanodet_m_320.onnx").is_file():
+        pytest.skip(f"detector models not found at {MODELS} (set ZOFFLOAD_DATA)")
+    return MODELS

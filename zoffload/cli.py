@@ -168,9 +168,9 @@ def _run_experiment(a: argparse.Namespace) -> int:
 def _detect_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--images", default="coco-clips",
                    help="camera source: coco-clips[:FOLDER] (default, has ground truth), a folder or a video")
-    p.add_argument("--max-frames", type=int, default=500, help="camera frames per run (default 500 = 20 s)")
-    p.add_argument("--cpu-quota", type=float, default=0.5,
-                   help="cores the robot process may use (CFS quota; default 0.5; 0 = no quota)")
+    p.add_argument("--max-frames", type=int, default=750, help="camera frames per run (default 750 = 30 s)")
+    p.add_argument("--cpu-quota", type=float, default=0.25,
+                   help="cores the robot process may use (CFS quota; default 0.25; 0 = no quota)")
     p.add_argument("--encoding", choices=["bgr8", "jpeg"], default="bgr8",
                    help="frame encoding (default bgr8)")
     p.add_argument("--seed", type=int, default=0)
@@ -212,9 +212,18 @@ def _run_detect_sweep(a: argparse.Namespace) -> int:
 def _run_report(a: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from zoffload.eval.detect_report import is_detect_run, write_detect_report
     from zoffload.eval.report import write_report
 
-    path = write_report([Path(d) for d in a.runs], Path(a.out) if a.out else None)
+    folders = [Path(d) for d in a.runs]
+    missing = [str(f) for f in folders if not (f / "results.json").is_file()]
+    if missing:
+        raise ConfigError(f"not experiment folders (no results.json): {', '.join(missing)}")
+    detect = [is_detect_run(f) for f in folders]
+    if any(detect) and not all(detect):
+        raise ConfigError("mixed scan and detect runs: report them separately")
+    out = Path(a.out) if a.out else None
+    path = write_detect_report(folders, out) if all(detect) else write_report(folders, out)
     print(path.read_text())
     print(f"report written to {path}")
     return ExitCode.OK

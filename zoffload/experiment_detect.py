@@ -41,8 +41,8 @@ class DetectExperiment:
     strategy: str
     out: str
     images: str = "coco-clips"
-    max_frames: int = 500  # 20 s at 25 FPS
-    cpu_quota: float | None = 0.5
+    max_frames: int = 750  # 30 s at 25 FPS: 15 clips
+    cpu_quota: float | None = 0.25
     encoding: str = "bgr8"
     edge_model: str = "picodet-s"
     local_model: str = "nanodet-m"

@@ -100,7 +100,7 @@ def frames_line(st: dict[str, float], elapsed: float, total: int) -> str:
     return (
         f"[{elapsed:5.1f} s] frames {int(st.get('frames_in', 0))}/{total} | local "
         f"{int(st.get('local_done', 0))}, edge {int(st.get('edge_done', 0))}, dropped "
-        f"{int(st.get('dropped_camera', 0) + st.get('dropped_stale', 0))}, "
+        f"{int(st.get('dropped_camera', 0) + st.get('dropped_stale', 0) + st.get('dropped_window', 0))}, "
         f"lost {int(st.get('edge_lost', 0))} | "
         f"CPU {st.get('cpu_process', float('nan')):.0f} % | {st.get('mbps_out', float('nan')):.0f} Mbps"
         f"{' | FALLBACK' if st.get('fallback') else ''}"

@@ -1,6 +1,7 @@
 """Where detector weights come from: a configured path, a model directory, or a verified download.
 
-Resolution order (DESIGN.md): an explicit path → ``$ZOFFLOAD_MODELS/<file>`` → ``../shared/data/models``
+Resolution order (DESIGN.md): an explicit path → ``$ZOFFLOAD_MODELS/<file>`` →
+``$ZOFFLOAD_DATA/models`` → ``../shared/data/models``
 when that folder exists → a download from a URL the user configures, checked against the
 checksum pinned here (the SHA-256 of the files this project is tested with). A model that cannot be
 found is a ``ModelError`` naming every place that was tried.
@@ -63,6 +64,8 @@ def model_dirs() -> list[Path]:
     dirs = []
     if os.environ.get("ZOFFLOAD_MODELS"):
         dirs.append(Path(os.environ["ZOFFLOAD_MODELS"]))
+    if os.environ.get("ZOFFLOAD_DATA"):
+        dirs.append(Path(os.environ["ZOFFLOAD_DATA"]) / "models")
     if SHARED_MODELS.is_dir():
         dirs.append(SHARED_MODELS)
     return dirs

@@ -9,8 +9,11 @@
   a frame that does not come back within the timeout enters the edge average *as* the timeout,
   and a frame still in flight counts with its age so far, so an edge that stops answering looks
   slow at once. The edge is also refused while ``max_in_flight`` frames are unanswered (a window,
-  as TCP's, that keeps the link from queuing frames that will be stale on arrival). While the rule
-  chooses local, one frame in ``probe_every`` still goes to the edge so its estimate stays fresh.
+  as TCP's, that keeps the link from queuing frames that will be stale on arrival); the frame is
+  then held back (skipped, counted) when the local detector is the slower side anyway — running it
+  would only take the weak robot's CPU from the frames in flight — and detected locally otherwise.
+  While the rule chooses local, one frame in ``probe_every`` still goes to the edge so its estimate
+  stays fresh.
 
 Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
 """
@@ -22,7 +25,7 @@ from dataclasses import dataclass, field
 
 from zoffload.monitor import MovingAverage
 
-LOCAL, EDGE = "local", "edge"
+LOCAL, EDGE, HOLD = "local", "edge", "hold"  # hold: the frame is skipped (newer ones follow)
 
 
 @dataclass
@@ -136,7 +139,7 @@ class ThesisDynamic(Strategy):
 class DeliveryAwareDynamic(ThesisDynamic):
     """Ours: timeouts count, in-flight age counts, a window bounds the edge queue, local probes."""
 
-    max_in_flight: int = 2
+    max_in_flight: int = 3
     probe_every: int = 10
     name: str = "dynamic"
     _since_probe: int = 0
@@ -151,7 +154,8 @@ class DeliveryAwareDynamic(ThesisDynamic):
     def choose(self, st: OffloadState) -> str:
         side = super().choose(st)
         if side == EDGE and self.max_in_flight and st.in_flight >= self.max_in_flight:
-            side = LOCAL
+            local = self.rtt_local.value
+            return HOLD if math.isfinite(local) and local > self.edge_estimate(st) else LOCAL
         if side == LOCAL and st.in_flight == 0:
             self._since_probe += 1
             if self._since_probe >= self.probe_every:
@@ -166,7 +170,7 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
 
 def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("inf"),
-                  max_in_flight: int = 2) -> Strategy:
+                  max_in_flight: int = 3) -> Strategy:
     """``robot``, ``edge``, ``ratio:R`` (0 ≤ R ≤ 1), ``thesis`` or ``dynamic``; ValueError otherwise."""
     if spec == "robot":
         return RobotOnly()

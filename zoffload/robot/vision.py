@@ -9,13 +9,17 @@ Outputs: ``<ns>/data/<robot>/frame`` (wire.Frame, congestion control DROP); resu
 Threads: the camera (paces the source, keeps only the newest frame: frames it overwrites are
 dropped at the camera and counted), this loop (decides and dispatches, never waits on a detector),
 the local detector (one slot: a frame still waiting when a newer local frame comes is dropped as
-stale and counted), a 1 Hz monitor (CPU, outgoing Mbps, RAPL power). Every frame the camera
-produced ends in exactly one bucket (``frames_in = processed + dropped``).
+stale and counted; a frame the strategy holds back is dropped as ``dropped_window``), a 1 Hz
+monitor (CPU, outgoing Mbps, RAPL power). Every frame the camera produced ends in exactly one
+bucket (``frames_in = processed + dropped``).
 
 Fallback: when the edge's liveliness token goes, frames in flight are booked lost at once and
-every frame is detected locally; an edge frame unanswered for ``reply_timeout`` is lost and puts the
-robot in fallback too. In fallback one probe frame goes to the edge every ``probe_period`` while its
-token is present; ``resume_after`` prompt answers in a row end the fallback (hysteresis).
+every frame is detected locally. An edge frame unanswered for ``reply_timeout`` is lost; it puts
+the robot in fallback too when ``fallback_losses`` frames in a row went unanswered and nothing came
+back for a whole timeout (a frame lost now and then is the link's loss: counted, and seen by the
+strategy). In fallback one probe
+frame goes to the edge every ``probe_period`` while its token is present; ``resume_after`` prompt
+answers in a row end the fallback (hysteresis).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from zoffload.detect.detector import Detector
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
 from zoffload.monitor import ByteRate, CpuMonitor, MovingAverage, RaplMonitor
-from zoffload.policy.offload import EDGE, LOCAL, OffloadState, make_strategy
+from zoffload.policy.offload import EDGE, HOLD, LOCAL, OffloadState, make_strategy
 from zoffload.robot.sensor import Reading, SensorThread
 from zoffload.sources.images import ImageFrame, open_image_source
 
@@ -48,7 +52,8 @@ FRAME_FIELDS = ["seq", "index", "capture", "side", "probe", "send", "result", "s
                 "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons"]
 # Final buckets of a camera frame
 DONE = ("local_done", "edge_done")
-DROPPED = ("dropped_camera", "dropped_stale", "edge_lost", "edge_dropped", "edge_error", "error")
+DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "edge_lost", "edge_dropped", "edge_error",
+           "error")
 
 
 class ImageOffloader:
@@ -83,6 +88,8 @@ class ImageOffloader:
         self.mbps = MovingAverage(3)
         self.samples: list[dict[str, float]] = []
         self._edge_seen = threading.Event()
+        self._last_reply = 0.0
+        self._lost_streak = 0
 
     # Startup
     def start(self) -> None:
@@ -104,8 +111,15 @@ class ImageOffloader:
         log.info("camera %s (%d frames at %.0f FPS), strategy %s, local %s", self.source.name,
                  len(self.source), self.camera.period ** -1, self.strategy.name, self.local.name)
         wait = self.settings.wait_edge
-        if wait > 0 and self.strategy.name != "robot" and not self._edge_seen.wait(wait):
-            log.warning("no edge after %.1f s; detecting locally until one appears", wait)
+        if wait > 0 and self.strategy.name != "robot":
+            deadline = time.monotonic() + wait
+            # Present (liveliness) and subscribed (a frame published before the edge's subscriber
+            # is matched would be lost on the way)
+            while time.monotonic() < deadline and not (self._edge_seen.is_set()
+                                                       and self._pub.matching_status.matching):
+                time.sleep(0.01)
+            if not self._edge_seen.is_set():
+                log.warning("no edge after %.1f s; detecting locally until one appears", wait)
 
     # Edge presence and results (Zenoh callback threads)
     def _on_edge_liveliness(self, sample: Any) -> None:
@@ -136,6 +150,8 @@ class ImageOffloader:
             return
         assert isinstance(msg, wire.DetectionsMsg)
         with self._lock:
+            self._last_reply = now
+            self._lost_streak = 0
             sent = self.in_flight.pop(msg.seq, None)
             rec = self.records.get(msg.seq)
             if sent is None or rec is None:
@@ -191,8 +207,13 @@ class ImageOffloader:
         overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.p.reply_timeout]
         for seq in overdue:
             self._book_lost(seq, now)
-        if overdue:
-            self._enter_fallback(now, f"{len(overdue)} edge frame(s) unanswered for {self.p.reply_timeout} s")
+        self._lost_streak += len(overdue)
+        # A frame lost now and then is the link's loss (counted, and the strategy sees it); an edge
+        # that lets several frames in a row go unanswered, and answered nothing for a whole
+        # timeout, is gone
+        if (overdue and self._lost_streak >= self.p.fallback_losses
+                and now - self._last_reply > self.p.reply_timeout):
+            self._enter_fallback(now, f"{self._lost_streak} edge frames in a row unanswered")
 
     def _finish(self, seq: int, bucket: str) -> None:
         self.records[seq]["status"] = bucket
@@ -281,6 +302,9 @@ class ImageOffloader:
             if probe:
                 self._last_probe = now
             self.records[reading.seq]["side"] = side
+            if side == HOLD:  # the edge's window is full and local is slower: skip this one
+                self._finish(reading.seq, "dropped_window")
+                return
         try:
             if side == LOCAL:
                 self._to_local(reading)

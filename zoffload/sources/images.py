@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,7 +112,7 @@ class CocoClipSource:
     """
 
     def __init__(self, root: Path, size: tuple[int, int] = (848, 480), fps: float = 25.0,
-                 frames_per_image: int = 25, zoom: tuple[float, float] = (1.0, 0.7),
+                 frames_per_image: int = 50, zoom: tuple[float, float] = (1.0, 0.85),
                  min_visible: float = 0.5) -> None:
         ann = root / "person_gt.json"
         if not ann.is_file():
@@ -192,7 +193,9 @@ def open_image_source(spec: str, rate_hz: float | None = None) -> ImageSource:
     """``coco-clips`` (the shared COCO person images), ``coco-clips:FOLDER``, an image folder, or a
     video file."""
     if spec == "coco-clips" or spec.startswith("coco-clips:"):
-        root = Path(spec.split(":", 1)[1]).expanduser() if ":" in spec else SHARED_COCO
+        default = (Path(os.environ["ZOFFLOAD_DATA"]) / "coco-person-dev" if os.environ.get("ZOFFLOAD_DATA")
+                   else SHARED_COCO)
+        root = Path(spec.split(":", 1)[1]).expanduser() if ":" in spec else default
         if not root.is_dir():
             raise ImageSourceError(f"COCO clip folder {root} does not exist (give coco-clips:FOLDER)")
         return CocoClipSource(root, fps=rate_hz or 25.0)

@@ -1,0 +1,157 @@
+"""Camera offloading with real processes and real models: the edge detector serving a robot, the
+robot falling back to its local detector when the edge is killed and resuming when it returns,
+and bad frames / unknown results counted instead of crashing anything."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
+from tests.system.procs import Proc, script, session_args
+from zoffload import wire
+from zoffload.config import DetectorSettings, EdgeSettings, MapperSettings
+
+pytestmark = [pytest.mark.system, pytest.mark.realdata]
+
+
+def _robot_yaml(tmp_path: Path, port: int, coco: Path, **perception: Any) -> Path:
+    cfg = {
+        "scans": "none", "images": f"coco-clips:{coco}", "out_dir": str(tmp_path / "robot"),
+        "perception": {"local_threads": 1, **perception},
+        "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False,
+                  "shared_memory": False, "cfg": ['connect/retry/period_max_ms:500',
+                                                  'connect/retry/period_init_ms:200']},
+    }
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _edge_args(port: int) -> list[str]:
+    return script("zoffload-edge") + session_args(listen=port) + ["--no-mapping"]
+
+
+def _frames(run: Path) -> list[dict[str, str]]:
+    with open(run / "frames.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
+                                                    models_dir: Path) -> None:
+    edge = Proc(_edge_args(free_port), tmp_path / "edge.log")
+    done = [0.0]
+
+    def on_status(sample: Any) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        done[0] = msg.values.get("edge_done", done[0])  # type: ignore[attr-defined]
+
+    cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=450, reply_timeout=0.5,
+                      probe_period=0.3, resume_after=2)
+    with client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"), 60)
+        s.declare_subscriber(KEYS.robot_status("robot1"), on_status)
+        robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+        wait_for(lambda: done[0] >= 20, 60, "edge results before the kill")
+    t_kill = time.time()
+    edge.p.kill()  # no goodbye
+    edge.wait()
+    time.sleep(2.0)
+    t_restart = time.time()
+    edge2 = Proc(_edge_args(free_port), tmp_path / "edge2.log")
+    try:
+        assert robot.wait(120) == 0, robot.text()
+    finally:
+        edge2.sigint()
+    run = tmp_path / "robot"
+    m = json.loads((run / "vision_metrics.json").read_text())
+    assert m["balanced"], m["balance"]
+    assert m["balance"]["frames_in"] == 450 and m["balance"]["pending"] == 0
+    falls = m["fallbacks"]
+    assert falls, robot.text()
+    assert 0 <= falls[0]["start"] - t_kill <= 0.25  # fully local within 250 ms
+    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_restart  # resumed once it was back
+    frames = _frames(run)
+    during = [f for f in frames if t_kill + 0.25 < float(f["capture"]) < t_restart]
+    assert during and all(f["side"] == "local" for f in during)
+    after = [f for f in frames if float(f["capture"]) > falls[0]["end"]]
+    assert any(f["status"] == "edge_done" for f in after)
+    assert all(f["status"] != "pending" for f in frames)  # no frame left waiting
+
+
+def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,
+                                              models_dir: Path) -> None:
+    edge = Proc(_edge_args(free_port), tmp_path / "edge.log")
+    try:
+        with client(free_port) as s:
+            wait_token(s, KEYS.edge_alive("edge1"), 60)
+            cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="dynamic", max_frames=150,
+                              encoding="jpeg")
+            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+            wait_token(s, KEYS.robot_alive("robot1"), 60)
+            # Results the robot never asked for: one for an unknown frame, one that is not a message
+            stray = wire.DetectionsMsg(robot="robot1", seq=10**9, send_stamp=0.0, edge="x", model="m",
+                                       status="ok", infer_time=0.0, queue_time=0.0, batch=1,
+                                       boxes=np.zeros((0, 4), np.float32), scores=np.zeros(0, np.float32),
+                                       classes=np.zeros(0, np.int32))
+            time.sleep(0.5)
+            s.put(KEYS.detections("robot1"), wire.encode(stray))
+            s.put(KEYS.detections("robot1"), b"garbage")
+            assert robot.wait(120) == 0, robot.text()
+    finally:
+        edge.sigint()
+    run = tmp_path / "robot"
+    m = json.loads((run / "vision_metrics.json").read_text())
+    b = m["balance"]
+    assert m["balanced"] and b["frames_in"] == 150
+    assert b["local_done"] > 0 and b["edge_done"] > 0  # the rule tried and used both sides
+    assert 0 < m["processed_pct"] <= 100
+    assert m["robot_rtt_ms"] > 0 and m["edge_rtt_ms"] > 0 and m["edge_infer_ms"] > 0
+    assert m["power_available"] is False or m["power_w"] is not None
+    assert m["other"]["late_or_unknown_results"] >= 1 and m["other"]["malformed_results"] == 1
+    frames = _frames(run)
+    jpeg_bytes = [float(f["bytes"]) for f in frames if f["side"] == "edge"]
+    assert max(jpeg_bytes) < 848 * 480 * 3 / 4  # JPEG, not raw
+    det = np.load(run / "detections.npz")
+    assert det["counts"].sum() > 0 and len(det["seqs"]) == b["local_done"] + b["edge_done"]
+
+
+def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int, models_dir: Path) -> None:
+    settings = EdgeSettings(mapper=MapperSettings(enabled=False), detector=DetectorSettings(enabled=True),
+                            zenoh=listen_on(free_port))
+    replies: list[wire.DetectionsMsg] = []
+
+    def on_det(sample: Any) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.DetectionsMsg)
+        assert isinstance(msg, wire.DetectionsMsg)
+        replies.append(msg)
+
+    with running_edge(settings) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        s.declare_subscriber(KEYS.detections("r1"), on_det)
+        pub = s.declare_publisher(KEYS.frame("r1"))
+        time.sleep(0.3)
+        pub.put(b"\x00not msgpack")
+        wrong_size = wire.Frame(robot="r1", seq=1, send_stamp=0.0, capture_stamp=0.0, encoding="bgr8",
+                                width=848, height=480, data=np.zeros(100, np.uint8))
+        bad_jpeg = wire.Frame(robot="r1", seq=2, send_stamp=0.0, capture_stamp=0.0, encoding="jpeg",
+                              width=8, height=8, data=np.frombuffer(b"\xff\xd8\xff junk", np.uint8))
+        good = wire.Frame(robot="r1", seq=3, send_stamp=0.0, capture_stamp=0.0, encoding="bgr8",
+                          width=64, height=48, data=np.zeros(64 * 48 * 3, np.uint8))
+        for k, f in enumerate((wrong_size, bad_jpeg, good)):  # one at a time: a burst would overflow
+            pub.put(wire.encode(f))                            # the queue and be answered "dropped"
+            wait_for(lambda k=k: len(replies) == k + 1, 20, f"answer {k + 1}")
+        assert edge.detector is not None
+        assert edge.detector.counters["malformed"] == 1
+        assert edge.detector.counters["errors"] == 2
+    by_seq = {r.seq: r for r in replies}
+    assert by_seq[1].status == "error" and "expected" in by_seq[1].detail
+    assert by_seq[2].status == "error" and "JPEG" in by_seq[2].detail
+    assert by_seq[3].status == "ok" and by_seq[3].model == "picodet-s" and by_seq[3].infer_time > 0
