@@ -320,7 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--out", required=True, help="sweep folder (one sub-folder per link and strategy)")
     sw.add_argument("--traces", nargs="+", default=None, help="default: none detect-capped wifi-locations")
     sw.add_argument("--strategies", nargs="+", default=None,
-                    help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic")
+                    help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic, dynamic@jpeg "
+                    "(S@jpeg: strategy S with JPEG frames)")
     _detect_arguments(sw)
     sw.set_defaults(func=_run_detect_sweep)
     rp = sub.add_parser("report", help="tables and plots from experiment folders")

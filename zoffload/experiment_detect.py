@@ -29,8 +29,10 @@ from zoffload.eval.detection import detection_metrics
 from zoffload.runner import frames_line, run_offload
 from zoffload.sources.images import CocoClipSource, open_image_source
 
-# The thesis' grid: robot-only, ratios 0.1 … 0.9, edge-only, its dynamic rule, and ours
-SWEEP_STRATEGIES = ["robot", *[f"ratio:{r / 10:g}" for r in range(1, 10)], "edge", "thesis", "dynamic"]
+# The thesis' grid: robot-only, ratios 0.1 … 0.9, edge-only, its dynamic rule, and ours (with raw
+# frames as everyone else, and with JPEG frames: going further than the thesis)
+SWEEP_STRATEGIES = ["robot", *[f"ratio:{r / 10:g}" for r in range(1, 10)], "edge", "thesis", "dynamic",
+                    "dynamic@jpeg"]
 # Its three links: unconstrained, capped at about 65 % of the raw stream, fluctuating Wi-Fi
 SWEEP_TRACES = ["none", "detect-capped", "wifi-locations"]
 
@@ -80,7 +82,8 @@ def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     if not metrics_path.exists():
         return {"kind": "detect", "strategy": exp.strategy, "trace": exp.trace, "error": "no robot results"}
     m = json.loads(metrics_path.read_text())
-    row: dict[str, Any] = {"kind": "detect", "strategy": exp.strategy, "trace": exp.trace,
+    label = exp.strategy if exp.encoding == "bgr8" else f"{exp.strategy}@{exp.encoding}"
+    row: dict[str, Any] = {"kind": "detect", "strategy": label, "trace": exp.trace,
                            "encoding": exp.encoding, "cpu_quota": exp.cpu_quota}
     if isinstance(source, CocoClipSource):
         row.update(detection_metrics(out, source.boxes, m["balance"]["frames_in"]))
@@ -104,11 +107,15 @@ def summary_line(row: dict[str, Any]) -> str:
 
 
 def run_sweep(out: Path, traces: list[str], strategies: list[str], **kw: Any) -> list[dict[str, Any]]:
+    """Every strategy on every trace; ``S@jpeg`` runs strategy S with JPEG frames."""
     rows = []
     for trace in traces:
-        for strategy in strategies:
-            name = strategy.replace(":", "_")
-            exp = DetectExperiment(trace=trace, strategy=strategy, out=str(out / trace / name), **kw)
+        for spec in strategies:
+            strategy, _, encoding = spec.partition("@")
+            name = spec.replace(":", "_").replace("@", "_")
+            args = dict(kw, encoding=encoding or kw.get("encoding", "bgr8"))
+            exp = DetectExperiment(trace=trace, strategy=strategy, out=str(out / Path(trace).stem / name),
+                                   **args)
             row = run_detect_experiment(exp)
             print(summary_line(row), flush=True)
             rows.append(row)

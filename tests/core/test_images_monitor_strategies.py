@@ -214,3 +214,18 @@ def test_bad_frames_are_value_errors_not_crashes() -> None:
         decode_image(frame(encoding="png"))
     ok, buf = cv2.imencode(".jpg", np.zeros((4, 6, 3), np.uint8))
     assert decode_image(frame(encoding="jpeg", data=buf.ravel())).shape == (4, 6, 3)
+
+
+def test_our_window_shrinks_when_frames_queue_and_grows_back() -> None:
+    ours = make_strategy("dynamic", max_in_flight=4)
+    assert ours.flight_window == 4  # type: ignore[attr-defined]
+    ours.on_local_result(0.5, service=0.5)
+    for rtt in (0.06, 0.06, 0.12, 0.15, 0.18, 0.2):  # the edge's queue fills: RTT climbs
+        ours.on_edge_result(rtt)
+    assert ours.flight_window == 2  # type: ignore[attr-defined]
+    assert ours.decide(_st(in_flight=2, oldest_in_flight_age=0.05)) == HOLD
+    ours.on_edge_timeout(0.5)
+    assert ours.flight_window == 1  # type: ignore[attr-defined]
+    for _ in range(12):
+        ours.on_edge_result(0.06)
+    assert ours.flight_window == 4  # type: ignore[attr-defined]

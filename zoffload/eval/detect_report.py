@@ -22,7 +22,7 @@ THESIS_AP: dict[tuple[str, str], float] = {
 LINK_NAMES = {"none": "unconstrained (Table 6.3)", "detect-capped": "capped 160 Mbps (Table 6.4)",
               "wifi-locations": "fluctuating Wi-Fi (Table 6.5)"}
 ROW_NAMES = {"robot": "Robot only", "edge": "Edge only", "thesis": "Dynamic (thesis rule)",
-             "dynamic": "Dynamic (ours)"}
+             "dynamic": "Dynamic (ours)", "dynamic@jpeg": "Dynamic (ours) + JPEG frames"}
 
 
 def is_detect_run(folder: Path) -> bool:
@@ -37,7 +37,7 @@ def _order(strategy: str) -> float:
         return 0.0
     if strategy.startswith("ratio:"):
         return float(strategy.split(":")[1])
-    return {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0}.get(strategy, 4.0)
+    return {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dynamic@jpeg": 3.5}.get(strategy, 4.0)
 
 
 def offload_ratio(strategy: str) -> float | None:
@@ -96,7 +96,7 @@ def plot(runs: list[dict[str, Any]], out: Path) -> list[Path]:
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=color,
                         label=LINK_NAMES.get(trace, trace))
             for r in rs:
-                if r["strategy"] in ("thesis", "dynamic") and r.get(key) is not None:
+                if r["strategy"] in ("thesis", "dynamic") and r.get(key) is not None:  # lines: rules
                     ax.axhline(r[key], color=color, ls="--" if r["strategy"] == "dynamic" else ":", lw=1)
         ax.set_xlabel("offloading ratio (0 = robot only, 1 = edge only); dashed: ours, dotted: thesis rule")
         ax.set_ylabel(label)

@@ -8,12 +8,15 @@
 * ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap —
   a frame that does not come back within the timeout enters the edge average *as* the timeout,
   and a frame still in flight counts with its age so far, so an edge that stops answering looks
-  slow at once. The edge is also refused while ``max_in_flight`` frames are unanswered (a window,
-  as TCP's, that keeps the link from queuing frames that will be stale on arrival); the frame is
-  then held back (skipped, counted) when the local detector is the slower side anyway — running it
-  would only take the weak robot's CPU from the frames in flight — and detected locally otherwise.
-  While the rule chooses local, one frame in ``probe_every`` still goes to the edge so its estimate
-  stays fresh.
+  slow at once; the local side is estimated by its detector's service time (doubled while it is
+  busy), not by the RTT of an idle detector; sides switch only for a 15 % better estimate. The
+  edge is also refused while a window of frames is unanswered (delay-based, as TCP Vegas: it
+  shrinks when the RTT climbs above the least seen, halves on a loss, grows back up to
+  ``max_in_flight``), which keeps the link and the edge from queuing frames that will be stale on
+  arrival; the frame is then held back (skipped, counted) when the local detector is the slower
+  side anyway (running it would only take the weak robot's CPU from the frames in flight) and
+  detected locally otherwise. While the rule chooses local, one frame in ``probe_every`` still
+  goes to the edge so its estimate stays fresh.
 
 Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
 """
@@ -21,6 +24,7 @@ Strategies are pure decision objects: the offloader feeds them observations and 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from zoffload.monitor import MovingAverage
@@ -60,7 +64,7 @@ class Strategy:
         return side
 
     # Observations (no-ops for the static strategies)
-    def on_local_result(self, rtt: float) -> None:  # noqa: B027 - optional hook
+    def on_local_result(self, rtt: float, service: float | None = None) -> None:  # noqa: B027
         pass
 
     def on_edge_result(self, rtt: float) -> None:  # noqa: B027 - optional hook
@@ -115,20 +119,26 @@ class ThesisDynamic(Strategy):
     def edge_estimate(self, st: OffloadState) -> float:
         return self.rtt_edge.value
 
+    def local_estimate(self, st: OffloadState) -> float:
+        return self.rtt_local.value
+
+    def compare(self, local: float, edge: float) -> str:
+        return EDGE if edge < local else LOCAL
+
     def choose(self, st: OffloadState) -> str:
         if math.isfinite(st.cpu_percent) and st.cpu_percent >= self.cpu_max:
             return EDGE
         if math.isfinite(st.mbps_out) and st.mbps_out >= self.bw_max_mbps:
             return LOCAL
-        local, edge = self.rtt_local.value, self.edge_estimate(st)
+        local, edge = self.local_estimate(st), self.edge_estimate(st)
         # Until both sides have been measured, try the unmeasured one
         if math.isnan(edge):
             return EDGE
         if math.isnan(local):
             return LOCAL
-        return EDGE if edge < local else LOCAL
+        return self.compare(local, edge)
 
-    def on_local_result(self, rtt: float) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None) -> None:
         self.rtt_local.add(rtt)
 
     def on_edge_result(self, rtt: float) -> None:
@@ -141,8 +151,50 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
     max_in_flight: int = 3
     probe_every: int = 10
+    margin: float = 0.15  # switch sides only for an estimate this much better (no flapping)
     name: str = "dynamic"
     _since_probe: int = 0
+    _preferred: str = EDGE
+    _window: float = 0.0
+    service_local: MovingAverage = field(default_factory=lambda: MovingAverage(10))
+    recent_edge: deque[float] = field(default_factory=lambda: deque(maxlen=50))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self._window = float(self.max_in_flight)
+
+    def on_edge_result(self, rtt: float) -> None:
+        """Besides the average: a delay-based window, as TCP Vegas. Frames queueing anywhere (the
+        link, the edge detector) raise the RTT above the least seen recently; the window then
+        shrinks, and grows back while answers come at about the least RTT."""
+        super().on_edge_result(rtt)
+        self.recent_edge.append(rtt)
+        base = min(self.recent_edge)
+        if rtt > 1.5 * base:
+            self._window = max(1.0, self._window - 0.5)
+        elif rtt < 1.2 * base:
+            self._window = min(float(self.max_in_flight), self._window + 0.25)
+
+    def local_estimate(self, st: OffloadState) -> float:
+        """What the next local frame would take: the detector's service time, twice if it is busy
+        (the frame waits for the one running). An idle detector's lucky RTT does not make local
+        look fast when every frame goes there."""
+        service = self.service_local.value
+        if math.isnan(service):
+            return self.rtt_local.value
+        return max(self.rtt_local.value, service * (2.0 if st.local_busy else 1.0))
+
+    def compare(self, local: float, edge: float) -> str:
+        if self._preferred == EDGE and local < (1 - self.margin) * edge:
+            self._preferred = LOCAL
+        elif self._preferred == LOCAL and edge < (1 - self.margin) * local:
+            self._preferred = EDGE
+        return self._preferred
+
+    def on_local_result(self, rtt: float, service: float | None = None) -> None:
+        self.rtt_local.add(rtt)
+        if service is not None:
+            self.service_local.add(service)
 
     def edge_estimate(self, st: OffloadState) -> float:
         est = self.rtt_edge.value
@@ -151,9 +203,13 @@ class DeliveryAwareDynamic(ThesisDynamic):
             est = st.oldest_in_flight_age if math.isnan(est) else max(est, st.oldest_in_flight_age)
         return est
 
+    @property
+    def flight_window(self) -> int:
+        return max(1, int(self._window)) if self.max_in_flight else 0
+
     def choose(self, st: OffloadState) -> str:
         side = super().choose(st)
-        if side == EDGE and self.max_in_flight and st.in_flight >= self.max_in_flight:
+        if side == EDGE and self.max_in_flight and st.in_flight >= self.flight_window:
             local = self.rtt_local.value
             return HOLD if math.isfinite(local) and local > self.edge_estimate(st) else LOCAL
         if side == LOCAL and st.in_flight == 0:
@@ -167,6 +223,7 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
     def on_edge_timeout(self, waited: float) -> None:
         self.rtt_edge.add(waited)
+        self._window = max(1.0, self._window / 2)
 
 
 def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("inf"),
