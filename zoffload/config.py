@@ -85,7 +85,7 @@ class PerceptionSettings(_Strict):
     jpeg_quality: int = Field(default=80, ge=1, le=100)
     cpu_max: float = Field(default=90.0, gt=0)  # the rule's CPU bound (process %, one core = 100)
     bw_max_mbps: float | None = Field(default=None, gt=0)  # the rule's bandwidth bound; None = none
-    max_in_flight: int = Field(default=3, ge=0)  # dynamic: unanswered edge frames before local
+    max_in_flight: int = Field(default=4, ge=0)  # dynamic: its window's upper end (unanswered frames)
     reply_timeout: float = Field(default=0.5, gt=0)  # an edge frame unanswered this long is lost
     fallback_losses: int = Field(default=3, ge=1)  # lost in a row (and a silent edge) → fallback
     probe_period: float = Field(default=0.5, gt=0)  # in fallback: one frame to the edge this often

@@ -11,12 +11,12 @@
   slow at once; the local side is estimated by its detector's service time (doubled while it is
   busy), not by the RTT of an idle detector; sides switch only for a 15 % better estimate. The
   edge is also refused while a window of frames is unanswered (delay-based, as TCP Vegas: it
-  shrinks when the RTT climbs above the least seen, halves on a loss, grows back up to
-  ``max_in_flight``), which keeps the link and the edge from queuing frames that will be stale on
-  arrival; the frame is then held back (skipped, counted) when the local detector is the slower
-  side anyway (running it would only take the weak robot's CPU from the frames in flight) and
-  detected locally otherwise. While the rule chooses local, one frame in ``probe_every`` still
-  goes to the edge so its estimate stays fresh.
+  shrinks when the smoothed RTT climbs to twice the least seen, halves on a loss, never below
+  two frames, grows back up to ``max_in_flight``), which keeps the link and the edge from queuing
+  frames that will be stale on arrival; the frame is then held back (skipped, counted) when the
+  local detector is the slower side anyway (running it would only take the weak robot's CPU from
+  the frames in flight) and detected locally otherwise. While the rule chooses local, one frame in
+  ``probe_every`` still goes to the edge so its estimate stays fresh.
 
 Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
 """
@@ -149,7 +149,8 @@ class ThesisDynamic(Strategy):
 class DeliveryAwareDynamic(ThesisDynamic):
     """Ours: timeouts count, in-flight age counts, a window bounds the edge queue, local probes."""
 
-    max_in_flight: int = 3
+    max_in_flight: int = 4
+    min_window: int = 2
     probe_every: int = 10
     margin: float = 0.15  # switch sides only for an estimate this much better (no flapping)
     name: str = "dynamic"
@@ -165,15 +166,24 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
     def on_edge_result(self, rtt: float) -> None:
         """Besides the average: a delay-based window, as TCP Vegas. Frames queueing anywhere (the
-        link, the edge detector) raise the RTT above the least seen recently; the window then
-        shrinks, and grows back while answers come at about the least RTT."""
+        link, the edge detector) lift the smoothed RTT well above the least seen recently; the
+        window then shrinks (never below ``min_window``), and grows back while the smoothed RTT
+        stays near the least. Thresholds are wide (2x / 1.5x): one frame's jitter must not throttle
+        an edge that keeps up, since a frame not sent is a frame not detected."""
         super().on_edge_result(rtt)
         self.recent_edge.append(rtt)
-        base = min(self.recent_edge)
-        if rtt > 1.5 * base:
-            self._window = max(1.0, self._window - 0.5)
-        elif rtt < 1.2 * base:
+        base, smooth = min(self.recent_edge), self.rtt_edge.value
+        if smooth > 2.0 * base:
+            self._window = max(float(self.min_window), self._window - 0.25)
+        elif smooth < 1.5 * base:
             self._window = min(float(self.max_in_flight), self._window + 0.25)
+
+    def edge_estimate(self, st: OffloadState) -> float:
+        est = self.rtt_edge.value
+        if st.in_flight and (math.isnan(est) or st.oldest_in_flight_age > est):
+            # The unanswered frame already took this long: the edge is at least this slow
+            est = st.oldest_in_flight_age
+        return est
 
     def local_estimate(self, st: OffloadState) -> float:
         """What the next local frame would take: the detector's service time, twice if it is busy
@@ -196,21 +206,14 @@ class DeliveryAwareDynamic(ThesisDynamic):
         if service is not None:
             self.service_local.add(service)
 
-    def edge_estimate(self, st: OffloadState) -> float:
-        est = self.rtt_edge.value
-        if st.in_flight and (math.isnan(est) or st.oldest_in_flight_age > est):
-            # The unanswered frame already took this long: the edge is at least this slow
-            est = st.oldest_in_flight_age if math.isnan(est) else max(est, st.oldest_in_flight_age)
-        return est
-
     @property
     def flight_window(self) -> int:
-        return max(1, int(self._window)) if self.max_in_flight else 0
+        return max(1, min(self.max_in_flight, int(self._window))) if self.max_in_flight else 0
 
     def choose(self, st: OffloadState) -> str:
         side = super().choose(st)
         if side == EDGE and self.max_in_flight and st.in_flight >= self.flight_window:
-            local = self.rtt_local.value
+            local = self.local_estimate(st)
             return HOLD if math.isfinite(local) and local > self.edge_estimate(st) else LOCAL
         if side == LOCAL and st.in_flight == 0:
             self._since_probe += 1
@@ -223,11 +226,11 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
     def on_edge_timeout(self, waited: float) -> None:
         self.rtt_edge.add(waited)
-        self._window = max(1.0, self._window / 2)
+        self._window = max(float(self.min_window), self._window / 2)
 
 
 def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("inf"),
-                  max_in_flight: int = 3) -> Strategy:
+                  max_in_flight: int = 4) -> Strategy:
     """``robot``, ``edge``, ``ratio:R`` (0 ≤ R ≤ 1), ``thesis`` or ``dynamic``; ValueError otherwise."""
     if spec == "robot":
         return RobotOnly()
