@@ -10,10 +10,9 @@
   and a frame still in flight counts with its age so far, so an edge that stops answering looks
   slow at once; the local side is estimated by its detector's service time (doubled while it is
   busy), not by the RTT of an idle detector; sides switch only for a 15 % better estimate. The
-  edge is also refused while a window of frames is unanswered (delay-based, as TCP Vegas: it
-  shrinks when the smoothed RTT climbs to twice the least seen, halves on a loss, never below
-  two frames, grows back up to ``max_in_flight``), which keeps the link and the edge from queuing
-  frames that will be stale on arrival; the frame is then held back (skipped, counted) when the
+  edge is also refused while a window of frames is unanswered (``max_in_flight``, halved on a
+  loss but never below two, grown back by a quarter frame per answer), which keeps a slow link
+  from queuing frames that will be stale on arrival; the frame is then held back (skipped, counted) when the
   local detector is the slower side anyway (running it would only take the weak robot's CPU from
   the frames in flight) and detected locally otherwise. While the rule chooses local, one frame in
   ``probe_every`` still goes to the edge so its estimate stays fresh.
@@ -24,7 +23,6 @@ Strategies are pure decision objects: the offloader feeds them observations and 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 from zoffload.monitor import MovingAverage
@@ -158,25 +156,14 @@ class DeliveryAwareDynamic(ThesisDynamic):
     _preferred: str = EDGE
     _window: float = 0.0
     service_local: MovingAverage = field(default_factory=lambda: MovingAverage(10))
-    recent_edge: deque[float] = field(default_factory=lambda: deque(maxlen=50))
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self._window = float(self.max_in_flight)
 
     def on_edge_result(self, rtt: float) -> None:
-        """Besides the average: a delay-based window, as TCP Vegas. Frames queueing anywhere (the
-        link, the edge detector) lift the smoothed RTT well above the least seen recently; the
-        window then shrinks (never below ``min_window``), and grows back while the smoothed RTT
-        stays near the least. Thresholds are wide (2x / 1.5x): one frame's jitter must not throttle
-        an edge that keeps up, since a frame not sent is a frame not detected."""
         super().on_edge_result(rtt)
-        self.recent_edge.append(rtt)
-        base, smooth = min(self.recent_edge), self.rtt_edge.value
-        if smooth > 2.0 * base:
-            self._window = max(float(self.min_window), self._window - 0.25)
-        elif smooth < 1.5 * base:
-            self._window = min(float(self.max_in_flight), self._window + 0.25)
+        self._window = min(float(self.max_in_flight), self._window + 0.25)
 
     def edge_estimate(self, st: OffloadState) -> float:
         est = self.rtt_edge.value
