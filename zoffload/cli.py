@@ -131,7 +131,7 @@ def _run_demo(a: argparse.Namespace) -> int:
     from zoffload.demo import DemoOptions, run
 
     return run(DemoOptions(duration=a.duration, scans=a.scans, out=a.out, voxel=a.voxel,
-                           replay=a.replay, trace=a.trace))
+                           replay=a.replay, trace=a.trace, camera=a.camera))
 
 
 def _run_link(a: argparse.Namespace) -> int:
@@ -158,7 +158,8 @@ def _run_experiment(a: argparse.Namespace) -> int:
     try:
         row = run_scan_experiment(ScanExperiment(
             trace=a.trace, policy=a.policy, scans=a.scans, out=a.out, max_scans=a.max_scans,
-            replay=a.replay, rate_hz=a.rate, seed=a.seed))
+            replay=a.replay, rate_hz=a.rate, seed=a.seed, coding=a.coding,
+            voxel_range=tuple(a.voxel_range) if a.voxel_range else None))
     except TraceError as exc:
         raise ConfigError(str(exc)) from exc
     print(summary_line(row))
@@ -288,6 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="link emulator trace between robot and edge (default: demo, good -> bad -> good)")
     d.add_argument("--no-link", dest="trace", action="store_const", const=None,
                    help="no link emulator: robot and edge over direct loopback TCP")
+    d.add_argument("--camera", nargs="?", const="coco-clips", default=None, metavar="SOURCE",
+                   help="also stream camera frames (default source: coco-clips, needs the models) to the "
+                   "edge detector, detected on the robot or the edge frame by frame")
     d.add_argument("--log-level", default=None)
     d.set_defaults(func=_run_demo)
     r = sub.add_parser("robot", help="the robot daemon (same as zoffload-robot)")
@@ -299,13 +303,18 @@ def build_parser() -> argparse.ArgumentParser:
     es = exs.add_parser("scan", help="robot -> link emulator -> edge, Table I of the scale paper")
     es.add_argument("--trace", required=True, help="shipped trace name or CSV file")
     es.add_argument("--policy", required=True,
-                    help="local, raw, fixed:V (e.g. fixed:0.05), dqn (the packaged model) or dqn:PATH")
+                    help="local, raw, fixed:V (e.g. fixed:0.05), dqn (the packaged model), dqn:PATH or rate "
+                    "(ours: sized for the link from the acks)")
     es.add_argument("--scans", default="sim", help="'sim' or a folder of real scans")
     es.add_argument("--out", required=True, help="results folder of this run")
     es.add_argument("--max-scans", type=int, help="default: the trace's length at the sensor rate + 10 s")
     es.add_argument("--replay", choices=["once", "loop", "pingpong"])
     es.add_argument("--rate", type=float, help="sensor rate in Hz (default: the source's)")
     es.add_argument("--seed", type=int, default=0)
+    es.add_argument("--coding", choices=["f32", "q16z"], default="f32",
+                    help="scan payload: float32 (default) or q16z (quantised, zstd-compressed)")
+    es.add_argument("--voxel-range", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+                    help="the scale policies' voxel range (default 0.01 0.07, a VLP-16 indoors)")
     es.add_argument("--log-level", default="WARNING")
     es.set_defaults(func=_run_experiment)
     ed = exs.add_parser("detect", help="camera frames robot/edge, the offloading thesis' Tables 6.3-6.5")

@@ -111,8 +111,12 @@ class RobotSettings(_Strict):
     max_scans: int | None = Field(default=None, ge=1)
     sim_seed: int = 0
     voxel: float = Field(default=0.05, ge=0)  # fixed voxel size (and the DQN's fallback); 0 = raw
-    scale_policy: str = "fixed"  # "fixed", "dqn" (the packaged model) or "dqn:PATH"
+    scale_policy: str = "fixed"  # "fixed", "dqn" (the packaged model), "dqn:PATH" or "rate" (ours)
     voxel_range: tuple[float, float] = (0.01, 0.07)
+    # Scan payload: "f32" floats, or "q16z" (coordinates quantised to quant_fraction x voxel
+    # size, 5 mm for raw scans, then Zstandard-compressed; decoded on the edge)
+    scan_coding: Literal["f32", "q16z"] = "f32"
+    quant_fraction: float = Field(default=0.1, gt=0, le=0.5)
     ack_timeout: float = Field(default=1.0, gt=0)  # an unanswered scan is lost after this
     # Scans sent but not yet answered before a new one waits its turn (dropped at source, newest
     # kept): like a TCP window, it keeps the link carrying whole scans. 0 = no limit.

@@ -42,6 +42,8 @@ class ScanExperiment:
     replay: Replay | None = None  # default: once for sim, pingpong for a folder
     rate_hz: float | None = None
     seed: int = 0
+    coding: str = "f32"  # scan payload coding: "f32" or "q16z"
+    voxel_range: tuple[float, float] | None = None  # the policies' range (default the robot's)
 
 
 def policy_voxel(policy: str) -> float | None:
@@ -49,7 +51,7 @@ def policy_voxel(policy: str) -> float | None:
     ``ConfigError`` for an unknown policy."""
     if policy == "local":
         return None
-    if policy == "dqn" or policy.startswith("dqn:"):
+    if policy == "dqn" or policy.startswith("dqn:") or policy == "rate":
         return 0.05
     if policy == "raw":
         return 0.0
@@ -61,7 +63,7 @@ def policy_voxel(policy: str) -> float | None:
         if v <= 0:
             raise ConfigError(f"policy {policy!r}: the voxel size must be positive")
         return v
-    raise ConfigError(f"unknown policy {policy!r} (local, raw, fixed:V, dqn, dqn:PATH)")
+    raise ConfigError(f"unknown policy {policy!r} (local, raw, fixed:V, dqn, dqn:PATH, rate)")
 
 
 def _reference(source: ScanSource, indices: list[int], is_sim: bool, gt: dict[int, np.ndarray]
@@ -87,7 +89,8 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
     t = np.array([float(r["interarrival"]) for r in received if r.get("interarrival") not in (None, "")
                   and np.isfinite(float(r["interarrival"]))])
     return {
-        "policy": exp.policy, "trace": exp.trace, "scans": exp.scans,
+        "policy": exp.policy if exp.coding == "f32" else f"{exp.policy}+{exp.coding}",
+        "trace": exp.trace, "scans": exp.scans,
         "S_kB": float(np.mean([float(r["bytes"]) for r in sent]) / 1e3) if sent and exp.policy != "local"
         else None,
         "points_before": float(np.mean([float(r["n_raw"]) for r in recs])) if recs else None,
@@ -177,8 +180,11 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     edge = EdgeSettings(map_dir=str(out))
     robot = RobotSettings(
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
-        scale_policy=exp.policy if exp.policy.startswith("dqn") else "fixed", out_dir=str(out), wait_edge=30,
+        scale_policy=exp.policy if exp.policy.startswith("dqn") or exp.policy == "rate" else "fixed",
+        out_dir=str(out), wait_edge=30, scan_coding=exp.coding,  # type: ignore[arg-type]
     )
+    if exp.voxel_range:
+        robot.voxel_range = exp.voxel_range
     run = run_offload(out, edge, robot, exp.trace, ["--seed", str(exp.seed)], max_scans,
                       max_scans / rate + 120, keep_interrupted=True)
     reply = run.reply

@@ -43,8 +43,9 @@ class ArraySpec:
         return arr
 
 
-def _array(spec: ArraySpec) -> Any:
-    return field(default=None, metadata={"array": spec})
+def _array(spec: ArraySpec, optional: bool = False) -> Any:
+    """An array field; an ``optional`` one may be absent on the wire (then it is None)."""
+    return field(default=None, metadata={"array": spec, "optional": optional})
 
 
 class Message:
@@ -66,7 +67,27 @@ class Scan(Message):
     voxel_max: float  # upper end of the robot's voxel range: sizes the edge mapper
     max_range: float  # the sensor's range limit [m]: sizes the edge mapper
     n_raw: int  # points before downsampling
-    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3)))
+    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3)))  # coding "f32"; empty for "q16z"
+    coding: str = "f32"  # "f32" or "q16z" (coding.py: quantised to quant_step, zstd-compressed)
+    quant_step: float = 0.0
+    n_points: int = -1  # points in ``packed`` (q16z)
+    origin: np.ndarray | None = _array(ArraySpec("<f8", (3,)), optional=True)
+    packed: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True)
+
+    def cloud(self) -> np.ndarray:
+        """The scan's points as float32 (n, 3), decoded if coded; ``WireError`` if it cannot be."""
+        if self.coding == "f32":
+            return self.points
+        if self.coding == "q16z":
+            from zoffload.coding import CodingError, decode_q16z
+
+            if self.packed is None or self.origin is None or self.quant_step <= 0 or self.n_points < 0:
+                raise WireError("q16z scan without packed data, origin, step or point count")
+            try:
+                return decode_q16z(self.packed.tobytes(), self.n_points, self.origin, self.quant_step)
+            except CodingError as exc:
+                raise WireError(str(exc)) from exc
+        raise WireError(f"unknown scan coding {self.coding!r} (f32, q16z)")
 
 
 @dataclass(frozen=True)
@@ -206,6 +227,8 @@ def encode(msg: Message) -> bytes:
     for f in dataclasses.fields(msg):  # type: ignore[arg-type]
         value = getattr(msg, f.name)
         spec = f.metadata.get("array")
+        if spec is not None and value is None and f.metadata.get("optional"):
+            continue
         if spec is not None:
             value = _enc_array(spec.check(f.name, np.asarray(value)))
         elif isinstance(value, (np.floating, np.integer)):
@@ -238,7 +261,8 @@ def decode(data: bytes | bytearray | memoryview, expect: type[Message] | None = 
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
         if name not in obj:
-            if f.default is not dataclasses.MISSING and "array" not in f.metadata:
+            if f.default is not dataclasses.MISSING and ("array" not in f.metadata
+                                                         or f.metadata.get("optional")):
                 continue
             if f.default_factory is not dataclasses.MISSING:
                 continue

@@ -100,3 +100,16 @@ def test_robot_runs_an_onnx_scale_policy_against_the_edge(free_port: int, tmp_pa
     voxels = [r["voxel"] for r in robot.ledger.records.values() if "voxel" in r]
     assert set(voxels) <= {0.01, 0.03, 0.05, 0.07} and len(set(voxels)) > 1
     assert voxels[0] == 0.03  # T0 = 0 < 0.1: the first decision is "finer" from v0 = 0.05
+
+
+def test_coded_scans_are_decoded_and_registered_on_the_edge(free_port: int, tmp_path: Path) -> None:
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))) as edge:
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=20, rate_hz=20,
+                                        scan_coding="q16z", out_dir=str(tmp_path)))
+        registered = edge.robots["robot1"].counters["registered"]
+    m = robot.metrics()
+    assert m["balanced"] and m["balance"]["acked"] >= 18 and registered >= 18, m["balance"]
+    rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
+    sent_bytes = np.mean([float(r["bytes"]) for r in rows if r["bytes"]])
+    points = np.mean([float(r["n_sent"]) for r in rows if r["n_sent"]])
+    assert sent_bytes < 0.45 * points * 12  # a third of the float payload, points all kept

@@ -176,7 +176,7 @@ class EdgeDaemon:
         try:
             if rs.mapper is None:
                 rs.mapper = self._make_mapper(scan)
-            points = scan.points
+            points = scan.cloud()  # decodes a coded payload; WireError if it is corrupt
             if len(points) == 0 or not np.isfinite(points).all():
                 raise ValueError("scan has no points or non-finite points")
             start = time.monotonic()

@@ -64,7 +64,8 @@ class OnnxScalePolicy:
 
 
 def load_scale_policy(spec: str, voxel: float, voxel_range: tuple[float, float]) -> ScalePolicy:
-    """``fixed`` (the robot's ``voxel``), ``dqn`` (the packaged model) or ``dqn:PATH``. A DQN model
+    """``fixed`` (the robot's ``voxel``), ``dqn`` (the packaged model), ``dqn:PATH`` or ``rate`` (ours,
+    policy/rate.py, over ``voxel_range``). A DQN model
     that cannot be loaded is logged and replaced by the fixed voxel size, named in the log."""
     if spec == "fixed":
         return FixedScale(voxel)
@@ -79,4 +80,8 @@ def load_scale_policy(spec: str, voxel: float, voxel_range: tuple[float, float])
             log.error("%s; falling back to a fixed voxel size of %g m", exc, voxel)
             fallback.name = f"{fallback.name} (fallback from dqn)"
             return fallback
-    raise ValueError(f"unknown scale policy {spec!r} (fixed, dqn, dqn:PATH)")
+    if spec == "rate":
+        from zoffload.policy.rate import LinkAwareScale
+
+        return LinkAwareScale(voxel_range, start=voxel if voxel > 0 else 0.05)
+    raise ValueError(f"unknown scale policy {spec!r} (fixed, dqn, dqn:PATH, rate)")

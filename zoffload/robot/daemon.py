@@ -22,11 +22,13 @@ from typing import Any
 import numpy as np
 
 from zoffload import wire
+from zoffload.coding import encode_q16z, quant_step
 from zoffload.config import RobotSettings, open_session, write_effective
 from zoffload.errors import ConfigError
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
 from zoffload.policy.onnx_scale import load_scale_policy
+from zoffload.policy.rate import LinkAwareScale, LinkView
 from zoffload.policy.scale import ScalePolicy
 from zoffload.robot.ledger import RECORD_FIELDS, ScanLedger
 from zoffload.robot.sensor import Reading, SensorThread
@@ -135,14 +137,15 @@ class RobotDaemon:
                 return
             last_t = self.ledger.last_interarrival
         # Choose the voxel size, downsample
-        self.voxel = self.policy.choose(last_t, self.voxel)
-        down = voxel_downsample(pts, self.voxel).astype(np.float32) if self.voxel > 0 else pts
+        if isinstance(self.policy, LinkAwareScale):
+            self.voxel, down = self.policy.choose_cloud(pts, self._link_view())
+            down = down.astype(np.float32)
+        else:
+            self.voxel = self.policy.choose(last_t, self.voxel)
+            down = voxel_downsample(pts, self.voxel).astype(np.float32) if self.voxel > 0 else pts
         # Encode and send
         send_stamp = time.monotonic()
-        msg = wire.Scan(robot=s.robot_id, seq=reading.seq, send_stamp=send_stamp,
-                        capture_stamp=reading.capture_stamp, voxel=self.voxel,
-                        voxel_max=max(s.voxel_range[1], self.voxel), max_range=self.source.max_range,
-                        n_raw=len(pts), points=np.ascontiguousarray(down, np.float32))
+        msg = self._scan_message(reading, send_stamp, len(pts), down)
         data = wire.encode(msg)
         record.update(voxel=self.voxel, n_sent=len(down), bytes=len(data))
         with self._lock:
@@ -151,6 +154,37 @@ class RobotDaemon:
         record_work = (time.perf_counter() - t0) * 1e3
         with self._lock:
             self.ledger.records[reading.seq]["work_ms"] = record_work
+
+    def _link_view(self) -> LinkView:
+        """The link as the acks show it: last T, bytes acked in the last second, bytes per point."""
+        now = time.monotonic()
+        rate = self.settings.rate_hz or self.source.rate_hz
+        with self._lock:
+            recs = list(self.ledger.records.values())[-60:]
+            last_t = self.ledger.last_interarrival
+        acked = [r for r in recs if r.get("status") == "acked" and "rtt" in r]
+        recent = [r for r in acked if r["send_stamp"] + r["rtt"] >= now - 1.0]
+        sent = [r for r in recs if r.get("bytes") and r.get("n_sent")][-5:]
+        return LinkView(
+            last_t=last_t,
+            acked_bytes_per_s=float(sum(r["bytes"] for r in recent)) if acked else float("nan"),
+            bytes_per_point=(sum(r["bytes"] for r in sent) / sum(r["n_sent"] for r in sent)) if sent
+            else float("nan"),
+            period=1.0 / rate)
+
+    def _scan_message(self, reading: Reading, send_stamp: float, n_raw: int, down: np.ndarray) -> wire.Scan:
+        s = self.settings
+        common = dict(robot=s.robot_id, seq=reading.seq, send_stamp=send_stamp,
+                      capture_stamp=reading.capture_stamp, voxel=self.voxel,
+                      voxel_max=max(s.voxel_range[1], self.voxel), max_range=self.source.max_range,
+                      n_raw=n_raw)
+        if s.scan_coding == "q16z":
+            step = quant_step(self.voxel, s.quant_fraction)
+            origin, blob = encode_q16z(down, step)
+            return wire.Scan(**common, points=np.zeros((0, 3), np.float32), coding="q16z",  # type: ignore[arg-type]
+                             quant_step=step, n_points=len(down), origin=origin,
+                             packed=np.frombuffer(blob, np.uint8))
+        return wire.Scan(**common, points=np.ascontiguousarray(down, np.float32))  # type: ignore[arg-type]
 
     # Main loop
     def run(self) -> dict[str, Any]:

@@ -1,0 +1,63 @@
+"""Our link-aware scale policy: the byte budget follows the acks, the choice fits the budget."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from zoffload.policy.onnx_scale import load_scale_policy
+from zoffload.policy.rate import LinkAwareScale, LinkView, candidate_grid
+from zoffload.sources.simulated import SimulatedSource
+from zoffload.voxel import voxel_downsample
+
+
+def _scan() -> np.ndarray:
+    pts = SimulatedSource(seed=0).read(3).points
+    return pts[np.isfinite(pts).all(axis=1)]
+
+
+def test_first_scan_uses_the_start_size_until_something_is_measured() -> None:
+    p = LinkAwareScale((0.01, 0.2), start=0.05)
+    assert p.reset() == 0.05
+    v, down = p.choose_cloud(_scan(), LinkView(0.0, math.nan, math.nan, 0.1))
+    assert v == 0.05 and len(down) == len(voxel_downsample(_scan(), 0.05))
+    # the first measurement sets the budget to the start size's bytes; on time it grows, finer
+    v, _ = p.choose_cloud(_scan(), LinkView(0.1, 2e6, 6.0, 0.1))
+    assert p.budget == pytest.approx(len(voxel_downsample(_scan(), 0.05)) * 6.0 * 1.05)
+    assert v <= 0.05
+
+
+def test_choice_is_the_finest_candidate_that_fits_the_budget() -> None:
+    pts = _scan()
+    p = LinkAwareScale((0.01, 0.2))
+    p.budget = 100_000.0
+    # on time: the budget grows 5 %, then the finest size whose points x 6 B fit it
+    v, down = p.choose_cloud(pts, LinkView(0.1, 2e6, 6.0, 0.1))
+    assert p.budget == pytest.approx(105_000.0)
+    fits = [c for c in p.candidates if len(voxel_downsample(pts, c)) * 6.0 <= p.budget]
+    assert v == min(fits) and len(down) * 6.0 <= p.budget
+    finer = [c for c in p.candidates if c < v]
+    assert all(len(voxel_downsample(pts, c)) * 6.0 > p.budget for c in finer)
+
+
+def test_a_late_scan_cuts_the_budget_to_what_the_link_delivers() -> None:
+    p = LinkAwareScale((0.01, 0.2), margin=0.85)
+    p.budget = 400_000.0
+    p.update_budget(LinkView(0.3, 1_000_000.0, 12.0, 0.1))  # 1 MB/s acked: 85 kB per period
+    assert p.budget == pytest.approx(85_000.0)
+    p.update_budget(LinkView(0.3, 5_000_000.0, 12.0, 0.1))  # never more than 80 % of before
+    assert p.budget == pytest.approx(68_000.0)
+    v, _ = p.choose_cloud(_scan(), LinkView(0.1, 1e6, 12.0, 0.1))
+    assert v > 0.05  # a tight budget means coarse voxels
+    tiny = LinkAwareScale((0.01, 0.2))
+    tiny.budget = 10.0
+    assert tiny.choose_cloud(_scan(), LinkView(0.1, 1e6, 12.0, 0.1))[0] == tiny.candidates[-1]
+
+
+def test_rate_policy_is_loaded_by_name() -> None:
+    p = load_scale_policy("rate", 0.05, (0.01, 0.3))
+    assert isinstance(p, LinkAwareScale) and p.candidates[-1] == pytest.approx(0.3)
+    with pytest.raises(ValueError):
+        candidate_grid(0.1, 0.05)
