@@ -20,27 +20,33 @@ class CodingError(ValueError):
     """A payload that cannot be encoded (a scan larger than the grid) or decoded (corrupt data)."""
 
 
-def quant_step(voxel: float, fraction: float = 0.1, floor: float = 0.002) -> float:
-    """The quantisation step for a scan downsampled at ``voxel`` (raw scans: 5 mm)."""
+def quant_step(voxel: float, fraction: float = 0.1, floor: float = 0.005) -> float:
+    """The quantisation step for a scan downsampled at ``voxel``: a tenth of it, never below 5 mm
+    (a LiDAR's range noise is centimetres; raw scans get 5 mm)."""
     return max(floor, voxel * fraction) if voxel > 0 else 0.005
 
 
-def encode_q16z(points: np.ndarray, step: float, level: int = 3) -> tuple[np.ndarray, bytes]:
-    """(origin (3,) float64, compressed bytes) of ``points`` (n, 3) on a ``step`` grid."""
+def encode_q16z(points: np.ndarray, step: float, level: int = 3,
+                widen: bool = False) -> tuple[np.ndarray, float, bytes]:
+    """(origin (3,) float64, step, compressed bytes) of ``points`` (n, 3) on a ``step`` grid. With
+    ``widen``, a scan too large for 65,535 steps gets the smallest step that fits instead of an
+    error (a 160 m wide outdoor scan: 2.5 mm)."""
     import zstandard
 
     if step <= 0:
         raise CodingError(f"quantisation step {step} must be positive")
     pts = np.asarray(points, np.float64)
     if len(pts) == 0:
-        return np.zeros(3), zstandard.ZstdCompressor(level=level).compress(b"")
+        return np.zeros(3), step, zstandard.ZstdCompressor(level=level).compress(b"")
     origin = pts.min(axis=0)
+    extent = float((pts.max(axis=0) - origin).max())
+    if extent / step > MAX_STEPS:
+        if not widen:
+            raise CodingError(f"scan extent {extent:.1f} m does not fit 16-bit steps of {step} m")
+        step = extent / MAX_STEPS * (1 + 1e-9)
     q = np.rint((pts - origin) / step)
-    if q.max() > MAX_STEPS:
-        extent = float((pts.max(axis=0) - origin).max())
-        raise CodingError(f"scan extent {extent:.1f} m does not fit 16-bit steps of {step} m")
     planar = np.ascontiguousarray(q.astype("<u2").T)  # x..., y..., z...
-    return origin, zstandard.ZstdCompressor(level=level).compress(planar.tobytes())
+    return origin, step, zstandard.ZstdCompressor(level=level).compress(planar.tobytes())
 
 
 def decode_q16z(blob: bytes, n: int, origin: np.ndarray, step: float) -> np.ndarray:

@@ -179,8 +179,7 @@ class RobotDaemon:
                       voxel_max=max(s.voxel_range[1], self.voxel), max_range=self.source.max_range,
                       n_raw=n_raw)
         if s.scan_coding == "q16z":
-            step = quant_step(self.voxel, s.quant_fraction)
-            origin, blob = encode_q16z(down, step)
+            origin, step, blob = encode_q16z(down, quant_step(self.voxel, s.quant_fraction), widen=True)
             return wire.Scan(**common, points=np.zeros((0, 3), np.float32), coding="q16z",  # type: ignore[arg-type]
                              quant_step=step, n_points=len(down), origin=origin,
                              packed=np.frombuffer(blob, np.uint8))
