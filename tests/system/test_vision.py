@@ -162,3 +162,36 @@ def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int
     assert by_seq[1].status == "error" and "expected" in by_seq[1].detail
     assert by_seq[2].status == "error" and "JPEG" in by_seq[2].detail
     assert by_seq[3].status == "ok" and by_seq[3].model == "picodet-s" and by_seq[3].infer_time > 0
+
+
+def test_one_edge_detector_serves_several_robots(free_port: int, models_dir: Path) -> None:
+    settings = EdgeSettings(mapper=MapperSettings(enabled=False), detector=DetectorSettings(enabled=True),
+                            zenoh=listen_on(free_port))
+    got: dict[str, list[wire.DetectionsMsg]] = {"r1": [], "r2": []}
+
+    def collect(robot: str) -> Any:
+        def on(sample: Any) -> None:
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.DetectionsMsg)
+            assert isinstance(msg, wire.DetectionsMsg) and msg.robot == robot
+            got[robot].append(msg)
+        return on
+
+    img = np.zeros((48, 64, 3), np.uint8)
+    with running_edge(settings) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        for r in got:
+            s.declare_subscriber(KEYS.detections(r), collect(r))
+        pubs = {r: s.declare_publisher(KEYS.frame(r)) for r in got}
+        time.sleep(0.3)
+        for seq in range(5):
+            for r, pub in pubs.items():
+                pub.put(wire.encode(wire.Frame(robot=r, seq=seq, send_stamp=float(seq), capture_stamp=0.0,
+                                               encoding="bgr8", width=64, height=48, data=img.reshape(-1))))
+            time.sleep(0.1)
+        wait_for(lambda: all(len(v) == 5 for v in got.values()), 20, "five answers per robot")
+        assert edge.detector is not None and edge.detector.counters["received"] == 10
+    for msgs in got.values():
+        assert sorted(m.seq for m in msgs) == list(range(5))
+        assert all(m.send_stamp == float(m.seq) for m in msgs)  # each robot's own stamps echoed
+        assert all(m.status in ("ok", "dropped") for m in msgs)
+        assert sum(m.status == "ok" for m in msgs) >= 3
