@@ -108,8 +108,23 @@ def test_coded_scans_are_decoded_and_registered_on_the_edge(free_port: int, tmp_
                                         scan_coding="q16z", out_dir=str(tmp_path)))
         registered = edge.robots["robot1"].counters["registered"]
     m = robot.metrics()
-    assert m["balanced"] and m["balance"]["acked"] >= 18 and registered >= 18, m["balance"]
+    assert m["balanced"] and m["balance"]["acked"] >= 15 and registered >= m["balance"]["acked"], m["balance"]
     rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
     sent_bytes = np.mean([float(r["bytes"]) for r in rows if r["bytes"]])
     points = np.mean([float(r["n_sent"]) for r in rows if r["n_sent"]])
     assert sent_bytes < 0.45 * points * 12  # a third of the float payload, points all kept
+
+
+def test_rate_policy_sizes_scans_from_the_acks(free_port: int, tmp_path: Path) -> None:
+    from zoffload.policy.rate import LinkAwareScale
+
+    with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=30, rate_hz=20,
+                                        scale_policy="rate", scan_coding="q16z", out_dir=str(tmp_path)))
+    assert isinstance(robot.policy, LinkAwareScale)
+    m = robot.metrics()
+    assert m["balanced"] and m["balance"]["acked"] >= 22, m["balance"]
+    rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
+    voxels = [float(r["voxel"]) for r in rows if r["voxel"]]
+    assert voxels[0] == 0.05 and all(0.01 - 1e-9 <= v <= 0.07 + 1e-9 for v in voxels)
+    assert len(set(voxels)) > 1 and robot.policy.budget > 0  # it follows the link, not a constant

@@ -7,8 +7,8 @@ The DQN sees only ``[T, v]``. This policy also uses:
   are tried on the scan itself (binary search over a sorted grid: point counts fall as the voxel
   grows) and converted to bytes with the bytes per point the last sent scans really cost (so
   payload coding, ``scan_coding: q16z``, is accounted for);
-* the deadline: a scan should reach the edge within ``deadline`` (the paper's 0.11 s) of the
-  previous one.
+* the deadline: a scan should reach the edge within ``deadline`` of the previous one (default
+  1.1 sensor periods: the paper's 0.11 s at 10 Hz).
 
 A byte budget per scan follows the link: when the edge reports a late scan (T > deadline) it drops
 to what the measured delivery rate carries in one sensor period (times ``margin``), and never
@@ -47,8 +47,8 @@ def candidate_grid(low: float, high: float, n: int = 12) -> list[float]:
 
 
 class LinkAwareScale:
-    def __init__(self, voxel_range: tuple[float, float], deadline: float = 0.11, margin: float = 0.85,
-                 start: float = 0.05) -> None:
+    def __init__(self, voxel_range: tuple[float, float], deadline: float | None = None,
+                 margin: float = 0.85, start: float = 0.05) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.deadline = deadline
         self.margin = margin
@@ -68,7 +68,8 @@ class LinkAwareScale:
         return self.last_voxel
 
     def update_budget(self, link: LinkView) -> float:
-        if link.last_t > self.deadline:
+        deadline = self.deadline if self.deadline is not None else 1.1 * link.period
+        if link.last_t > deadline:
             carried = link.acked_bytes_per_s * link.period * self.margin
             cap = self.budget * 0.8
             self.budget = min(cap, carried) if math.isfinite(carried) and carried > 0 else cap
