@@ -9,6 +9,7 @@ not the time share, and the result says which one was applied.
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
 import os
@@ -33,6 +34,7 @@ def apply_cpu_quota(cores: float, name: str | None = None) -> str:
             (group / "cpu.cfs_period_us").write_text(str(PERIOD_US))
             (group / "cpu.cfs_quota_us").write_text(str(quota_us))
             (group / "cgroup.procs").write_text(pid)
+            atexit.register(_leave, V1, group)
             log.info("CPU quota %.2f cores via %s", cores, group)
             return "cgroup-v1"
         except OSError as exc:
@@ -43,6 +45,7 @@ def apply_cpu_quota(cores: float, name: str | None = None) -> str:
             group.mkdir(exist_ok=True)
             (group / "cpu.max").write_text(f"{quota_us} {PERIOD_US}")
             (group / "cgroup.procs").write_text(pid)
+            atexit.register(_leave, V2, group)
             log.info("CPU quota %.2f cores via %s", cores, group)
             return "cgroup-v2"
         except OSError as exc:
@@ -52,10 +55,10 @@ def apply_cpu_quota(cores: float, name: str | None = None) -> str:
     return "threads"
 
 
-def remove_group(name: str) -> None:
-    """Remove an (empty) group made by ``apply_cpu_quota``; ignore what is not there."""
-    for root in (V1, V2):
-        try:
-            (root / name).rmdir()
-        except OSError:
-            pass
+def _leave(root: Path, group: Path) -> None:
+    """At exit: move this process back to the root group and remove its own (now empty) group."""
+    try:
+        (root / "cgroup.procs").write_text(str(os.getpid()))
+        group.rmdir()
+    except OSError as exc:  # threads still exiting keep it busy: the group stays, harmless
+        log.debug("cgroup %s not removed: %s", group, exc)
