@@ -7,8 +7,8 @@
   the frames that *came back* (inference + network).
 * ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap —
   a frame that does not come back within the timeout enters the edge average *as* the timeout,
-  and a frame still in flight counts with its age so far, so an edge that stops answering looks
-  slow at once; the local side is estimated by its detector's service time (doubled while it is
+  and a frame still in flight for over twice the average counts with its age so far, so an edge
+  that stops answering looks slow at once; the local side is estimated by its detector's service time (doubled while it is
   busy), not by the RTT of an idle detector; sides switch only for a 15 % better estimate. The
   edge is also refused while a window of frames is unanswered (``max_in_flight``, halved on a
   loss but never below two, grown back by a quarter frame per answer), which keeps a slow link
@@ -151,6 +151,7 @@ class DeliveryAwareDynamic(ThesisDynamic):
     min_window: int = 2
     probe_every: int = 10
     margin: float = 0.15  # switch sides only for an estimate this much better (no flapping)
+    stall_factor: float = 2.0  # an in-flight frame older than this x the average means a stall
     name: str = "dynamic"
     _since_probe: int = 0
     _preferred: str = EDGE
@@ -167,8 +168,10 @@ class DeliveryAwareDynamic(ThesisDynamic):
 
     def edge_estimate(self, st: OffloadState) -> float:
         est = self.rtt_edge.value
-        if st.in_flight and (math.isnan(est) or st.oldest_in_flight_age > est):
-            # The unanswered frame already took this long: the edge is at least this slow
+        if st.in_flight and (math.isnan(est) or st.oldest_in_flight_age > self.stall_factor * est):
+            # The unanswered frame already took this long, far beyond the usual: the edge (or the
+            # link) is stalling and is at least this slow. Within the usual spread, pipelined
+            # frames are simply on their way.
             est = st.oldest_in_flight_age
         return est
 
