@@ -63,7 +63,12 @@ def robot_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--replay", choices=["once", "loop", "pingpong"], help="replay mode")
     p.add_argument("--rate", type=float, dest="rate_hz", help="sensor rate in Hz (default: source's)")
     p.add_argument("--max-scans", type=int, help="stop after this many scans")
-    p.add_argument("--voxel", type=float, help="fixed voxel size in m; 0 sends raw scans")
+    p.add_argument("--voxel", type=float,
+                   help="voxel size in m (the fixed policy's size, the rate policy's start); 0 = raw")
+    p.add_argument("--scale-policy", help="rate (default: sized for the link), fixed, dqn or dqn:PATH")
+    p.add_argument("--voxel-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="the scale policy's voxel range in m (default 0.01 0.07; 0.02 0.5 for an HDL-64)")
+    p.add_argument("--scan-coding", choices=["f32", "q16z"], help="scan payload (default q16z)")
     p.add_argument("--ack-timeout", type=float, help="seconds before an unanswered scan is lost")
     p.add_argument("--max-in-flight", type=int,
                    help="unanswered scans before the next is held back (default 3; 0 = no limit)")
@@ -92,8 +97,8 @@ def _flags(a: argparse.Namespace, names: Sequence[str]) -> dict[str, Any]:
 
 
 def robot_settings(a: argparse.Namespace) -> RobotSettings:
-    names = ["namespace", "robot_id", "scans", "replay", "rate_hz", "max_scans", "voxel",
-             "ack_timeout", "max_in_flight", "wait_edge", "out_dir"]
+    names = ["namespace", "robot_id", "scans", "replay", "rate_hz", "max_scans", "voxel", "scale_policy",
+             "voxel_range", "scan_coding", "ack_timeout", "max_in_flight", "wait_edge", "out_dir"]
     return load_settings(RobotSettings, a.settings, _flags(a, names), "ZOFFLOAD_ROBOT__")
 
 

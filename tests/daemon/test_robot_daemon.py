@@ -33,7 +33,7 @@ def run_robot(settings: RobotSettings, source: object | None = None) -> RobotDae
 def test_scans_are_acked_and_counters_balance(free_port: int, tmp_path: Path) -> None:
     with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
         robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=25, rate_hz=20,
-                                        out_dir=str(tmp_path)))
+                                        scale_policy="fixed", scan_coding="f32", out_dir=str(tmp_path)))
     m = robot.metrics()
     assert m["balanced"] and m["balance"]["produced"] == 25
     assert m["balance"]["acked"] >= 24 and m["balance"]["in_flight"] == 0

@@ -5,17 +5,18 @@
 * ``thesis``: the thesis' Algorithm 2 as published: CPU ≥ cpu_max → edge; outgoing bandwidth ≥
   bw_max → local; else the side with the lower smoothed RTT, where the edge RTT is averaged over
   the frames that *came back* (inference + network).
-* ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap —
-  a frame that does not come back within the timeout enters the edge average *as* the timeout,
-  and a frame still in flight for over twice the average counts with its age so far, so an edge
-  that stops answering looks slow at once; the local side is estimated by its detector's service time (doubled while it is
-  busy), not by the RTT of an idle detector; sides switch only for a 15 % better estimate. The
-  edge is also refused while a window of frames is unanswered (``max_in_flight``, halved on a
-  loss but never below two, grown back by a quarter frame per answer), which keeps a slow link
-  from queuing frames that will be stale on arrival; the frame is then held back (skipped, counted) when the
-  local detector is the slower side anyway (running it would only take the weak robot's CPU from
-  the frames in flight) and detected locally otherwise. While the rule chooses local, one frame in
-  ``probe_every`` still goes to the edge so its estimate stays fresh.
+* ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap.
+  A frame that does not come back within the timeout enters the edge average *as* the timeout,
+  and a frame in flight for over twice the average counts with its age so far, so an edge that
+  stops answering looks slow at once. The local side is estimated by its detector's service time
+  (doubled while it is busy), not by the RTT of an idle detector. Sides switch only for a 15 %
+  better estimate. The edge is refused while a window of frames is unanswered (``max_in_flight``,
+  halved on a loss but never below two, grown back by a quarter frame per answer), which keeps a
+  slow link from queuing frames that will be stale on arrival; the frame is then held back
+  (skipped, counted) when the local detector is the slower side anyway (running it would only
+  take the weak robot's CPU from the frames in flight) and detected locally otherwise. While the
+  rule chooses local, one frame in ``probe_every`` still goes to the edge so its estimate stays
+  fresh.
 
 Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
 """
