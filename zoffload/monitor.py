@@ -133,11 +133,13 @@ class Pinger:
     def ping(self) -> float:
         t0 = time.monotonic()
         try:
-            for reply in self.session.get(self.key, parameters=f"stamp={time.time()}", timeout=self.timeout):
+            # the stamp travels in the selector's parameters (``key?stamp=…``), echoed in the Pong
+            for reply in self.session.get(f"{self.key}?stamp={time.time():.6f}", timeout=self.timeout):
                 if reply.ok is not None:
                     return (time.monotonic() - t0) * 1e3
-        except Exception as exc:  # a closed session while stopping
-            log.debug("ping failed: %s", exc)
+        except Exception as exc:  # a closed session while stopping, or a bad key
+            if not self._stop.is_set():
+                log.warning("ping on %s failed: %s", self.key, exc)
         return float("nan")
 
     def _run(self) -> None:

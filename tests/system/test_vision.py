@@ -123,6 +123,7 @@ def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, co
     assert m["robot_rtt_ms"] > 0 and m["edge_rtt_ms"] > 0 and m["edge_infer_ms"] > 0
     assert m["power_available"] is False or m["power_w"] is not None
     assert m["other"]["late_or_unknown_results"] >= 1 and m["other"]["malformed_results"] == 1
+    assert 0 < m["ping_ms"] < 500  # the 1 Hz ping-pong to the edge's queryable answered
     frames = _frames(run)
     jpeg_bytes = [float(f["bytes"]) for f in frames if f["side"] == "edge"]
     assert max(jpeg_bytes) < 848 * 480 * 3 / 4  # JPEG, not raw

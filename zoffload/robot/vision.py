@@ -12,8 +12,8 @@ dropped at the camera and counted), this loop (decides and dispatches, never wai
 or on the link), the frame sender (one slot, like the local detector: ``dropped_send``),
 the local detector (one slot: a frame still waiting when a newer local frame comes is dropped as
 stale and counted; a frame the strategy holds back is dropped as ``dropped_window``), a 1 Hz
-monitor (CPU, outgoing Mbps, RAPL power). Every frame the camera produced ends in exactly one
-bucket (``frames_in = processed + dropped``).
+monitor (CPU, outgoing Mbps, RAPL power, ping-pong RTT to the edge). Every frame the camera
+produced ends in exactly one bucket (``frames_in = processed + dropped``).
 
 Fallback: when the edge's liveliness token goes, frames in flight are booked lost at once and
 every frame is detected locally. An edge frame unanswered for ``reply_timeout`` is lost; it puts
@@ -43,7 +43,7 @@ from zoffload.config import RobotSettings
 from zoffload.detect.detector import Detector
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
-from zoffload.monitor import ByteRate, CpuMonitor, MovingAverage, RaplMonitor
+from zoffload.monitor import ByteRate, CpuMonitor, MovingAverage, Pinger, RaplMonitor
 from zoffload.policy.offload import EDGE, HOLD, LOCAL, OffloadState, make_strategy
 from zoffload.robot.sensor import Reading, SensorThread
 from zoffload.sources.images import ImageFrame, open_image_source
@@ -410,21 +410,28 @@ class ImageOffloader:
     def _monitor(self) -> None:
         cpu, rapl = CpuMonitor(), RaplMonitor()
         rate = ByteRate(lambda: float(self.bytes_sent))
-        while not self.stop.wait(1.0) and not self._stopping:
-            system, proc = cpu.sample()
-            mbps, watts = rate.sample(), rapl.sample()
-            with self._lock:
-                self.cpu.add(proc)
-                self.mbps.add(mbps)
-                self.samples.append({"t": time.time(), "cpu_system": system, "cpu_process": proc,
-                                     "mbps_out": mbps, "power_w": watts})
-            self._publish_status(system, proc, mbps, watts)
+        # 1 Hz ping-pong over the edge's ping queryable: the network's share of the edge RTT
+        pinger = Pinger(self.session, self.keys.ping(self.settings.robot_id), period=1.0,
+                        timeout=self.p.reply_timeout).start()
+        try:
+            while not self.stop.wait(1.0) and not self._stopping:
+                system, proc = cpu.sample()
+                mbps, watts = rate.sample(), rapl.sample()
+                ping = pinger.rtt.value
+                with self._lock:
+                    self.cpu.add(proc)
+                    self.mbps.add(mbps)
+                    self.samples.append({"t": time.time(), "cpu_system": system, "cpu_process": proc,
+                                         "mbps_out": mbps, "power_w": watts, "ping_ms": ping})
+                self._publish_status(system, proc, mbps, watts, ping)
+        finally:
+            pinger.stop()
 
-    def _publish_status(self, system: float, proc: float, mbps: float, watts: float) -> None:
+    def _publish_status(self, system: float, proc: float, mbps: float, watts: float, ping: float) -> None:
         """Camera counters and monitor readings on the robot's status key (for dashboards)."""
         values = {k: float(v) for k, v in self.balance().items()}
         with self._lock:
-            values.update(cpu_system=system, cpu_process=proc, mbps_out=mbps, power_w=watts,
+            values.update(cpu_system=system, cpu_process=proc, mbps_out=mbps, power_w=watts, ping_ms=ping,
                           fallback=float(self.fallback), edges=float(len(self.edges)),
                           offloaded=float(self.strategy.offloaded))
         status = wire.Status(source="robot", id=self.settings.robot_id, stamp=time.time(), values=values)
@@ -473,6 +480,7 @@ class ImageOffloader:
             "mbps_out": mean([s["mbps_out"] for s in samples]),
             "power_w": mean([s["power_w"] for s in samples]),
             "power_available": RaplMonitor().available,
+            "ping_ms": mean([s.get("ping_ms") for s in samples]),
             "fallbacks": self.fallback_events,
             "other": {k: v for k, v in counters.items() if k not in bal},
         }
@@ -497,6 +505,7 @@ class ImageOffloader:
                  else np.zeros(0, np.float32),
                  period=self.camera.period)
         with open(out_dir / "monitor.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=["t", "cpu_system", "cpu_process", "mbps_out", "power_w"])
+            w = csv.DictWriter(f, fieldnames=["t", "cpu_system", "cpu_process", "mbps_out", "power_w",
+                                              "ping_ms"])
             w.writeheader()
             w.writerows(samples)
