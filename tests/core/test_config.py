@@ -79,3 +79,15 @@ def test_zenoh_config_applies_the_session_flags() -> None:
 def test_zenoh_config_error_is_clear() -> None:
     with pytest.raises(ZenohSessionError, match="invalid Zenoh configuration"):
         zenoh_config(ZenohSettings(cfg=["no/such/key:1"]))
+
+
+def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
+    from zoffload.config import zenoh_config
+    from zoffload.edge.daemon import DROP_WAIT_KEY, edge_zenoh
+
+    z = edge_zenoh(ZenohSettings(cfg=['mode:"peer"']))
+    assert z.cfg[0] == f"{DROP_WAIT_KEY}:50000" and z.cfg[1] == 'mode:"peer"'
+    cc = zenoh_config(z).get_json("transport/link/tx/queue/congestion_control")
+    assert '"wait_before_drop":50000' in cc
+    mine = ZenohSettings(cfg=[f"{DROP_WAIT_KEY}:0"])
+    assert edge_zenoh(mine) == mine

@@ -111,7 +111,11 @@ def test_overload_drops_oldest_and_says_so(free_port: int) -> None:
         for payload in burst:  # far faster than registration
             pub.put(payload)
         wait_for(lambda: edge.counters["received"] == 30, what="all 30 scans received")
-        wait_for(lambda: len(acks.items) == 30, timeout=30, what="an ack for every scan")
+        try:
+            wait_for(lambda: len(acks.items) == 30, timeout=30, what="an ack for every scan")
+        except AssertionError as exc:
+            got = sorted(a.seq for a in acks.items)
+            raise AssertionError(f"acks {got} counters {dict(edge.counters)}") from exc
         dropped = [x for x in acks.items if x.status == "dropped"]
         assert dropped and all("overloaded" in x.detail for x in dropped)
         assert edge.counters["dropped"] == len(dropped)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from zoffload import wire
-from zoffload.config import EdgeSettings, MapperSettings, open_session, write_effective
+from zoffload.config import EdgeSettings, MapperSettings, ZenohSettings, open_session, write_effective
 from zoffload.edge.mapper import RobotMapper, load_kiss_icp, mapper_voxel_size
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
@@ -56,6 +56,20 @@ class RobotSession:
     proc_times: list[float] = field(default_factory=list)
 
 
+DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_drop"
+DROP_WAIT_US = 50_000
+
+
+def edge_zenoh(z: ZenohSettings) -> ZenohSettings:
+    """The edge's session settings: acks and detections are small and published with DROP (a
+    stalled robot must not block the mapper or the detector), but Zenoh's default 1 ms wait before
+    dropping loses some of a burst of acks when the edge's CPU is busy. The edge waits up to 50 ms
+    (two camera frames) unless the user's ``--cfg`` or config file sets the key."""
+    if z.config_file or any(item.split(":", 1)[0] == DROP_WAIT_KEY for item in z.cfg):
+        return z
+    return z.model_copy(update={"cfg": [f"{DROP_WAIT_KEY}:{DROP_WAIT_US}", *z.cfg]})
+
+
 class EdgeDaemon:
     def __init__(self, settings: EdgeSettings, stop: StopSignal | None = None) -> None:
         self.settings = settings
@@ -75,7 +89,7 @@ class EdgeDaemon:
         # Compile the map kernels and load KISS-ICP now, not while the first scans queue up
         warmup()
         load_kiss_icp()
-        self.session = open_session(s.zenoh)
+        self.session = open_session(edge_zenoh(s.zenoh))
         self._token = self.session.liveliness().declare_token(self.keys.edge_alive(s.edge_id))
         self._sub = self.session.declare_subscriber(self.keys.all_scans(), self._on_scan)
         self._map_q = self.session.declare_queryable(self.keys.all_maps(), self._on_map_query)
