@@ -47,4 +47,4 @@ def test_rtt_is_robot_clock_and_network_time_excludes_edge_time() -> None:
     rec = led.records[0]
     assert abs(rec["rtt"] - 0.2) < 1e-9
     assert abs(rec["network_time"] - (0.2 - 0.021)) < 1e-9
-    assert led.last_interarrival == 0.12
+    assert led.last_interarrival == 0.12 and led.interarrivals_seen == 1

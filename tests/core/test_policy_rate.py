@@ -61,3 +61,39 @@ def test_rate_policy_is_loaded_by_name() -> None:
     assert isinstance(p, LinkAwareScale) and p.candidates[-1] == pytest.approx(0.3)
     with pytest.raises(ValueError):
         candidate_grid(0.1, 0.05)
+
+
+def test_budget_moves_once_per_new_ack() -> None:
+    p = LinkAwareScale((0.01, 0.2))
+    p.budget = 200_000.0
+    late = LinkView(0.3, 1_000_000.0, 12.0, 0.1, acks=7)
+    p.update_budget(late)
+    assert p.budget == pytest.approx(85_000.0)
+    p.update_budget(late)  # the same late ack seen by the next scan: no second cut
+    assert p.budget == pytest.approx(85_000.0)
+    p.update_budget(LinkView(0.1, 1_000_000.0, 12.0, 0.1, acks=7))
+    assert p.budget == pytest.approx(85_000.0)  # nothing new, no growth either
+    p.update_budget(LinkView(0.1, 1_000_000.0, 12.0, 0.1, acks=8))
+    assert p.budget == pytest.approx(89_250.0)  # a new on-time ack: grows 5 %
+
+
+def test_slow_probe_near_the_ceiling_and_fast_again_past_it() -> None:
+    p = LinkAwareScale((0.01, 0.2), margin=0.85)
+    p.budget = 200_000.0
+    p.update_budget(LinkView(0.3, 1_000_000.0, 12.0, 0.1))  # late: 100 kB per period is the ceiling
+    assert p.ceiling == pytest.approx(100_000.0) and p.budget == pytest.approx(85_000.0)
+    on_time = LinkView(0.1, 1_000_000.0, 12.0, 0.1)
+    p.update_budget(on_time)
+    assert p.budget == pytest.approx(89_250.0)  # 5 % ...
+    p.update_budget(on_time)
+    assert p.budget == pytest.approx(90_000.0)  # ... up to 90 % of the ceiling, not past it
+    p.update_budget(on_time)
+    assert p.budget == pytest.approx(90_450.0)  # then 0.5 % per on-time ack
+    steps = 0
+    while p.budget <= 110_000.0:
+        p.update_budget(on_time)
+        steps += 1
+    assert 35 <= steps <= 45  # about four seconds of probing at 10 Hz to get 10 % past the ceiling
+    before = p.budget
+    p.update_budget(on_time)  # past the ceiling on time: the link got better, the ceiling is gone
+    assert math.isinf(p.ceiling) and p.budget == pytest.approx(before * 1.05)

@@ -11,11 +11,15 @@ The DQN sees only ``[T, v]``. This policy also uses:
   1.05 sensor periods, 0.105 s at 10 Hz: a little inside the paper's 0.11 s, since arrival
   times jitter around the period; measured against 1.1 and 1.0 in the README).
 
-A byte budget per scan follows the link: when the edge reports a late scan (T > deadline) it drops
-to what the measured delivery rate carries in one sensor period (times ``margin``), and never
-above 80 % of its previous value; while scans arrive on time it grows by 5 % per scan, so the
-policy probes for more as a link recovers. The finest candidate whose predicted bytes fit the
-budget is chosen. Decisions cost a few voxel passes (2-3 ms on a simulator scan), paid on the
+A byte budget per scan follows the link, updated once per new ack (an old ack seen again says
+nothing new): when the edge reports a late scan (T > deadline) the budget drops to what the
+measured delivery rate carries in one sensor period (times ``margin``), and never above 80 % of
+its previous value, and the link's capacity per period at that moment is remembered as the
+*ceiling*. While scans arrive on time the budget grows by 5 % per ack up to 90 % of the ceiling,
+then by 0.5 % per ack (a slow probe, so a saturated link sees one late scan every few seconds
+instead of one in three), and by 5 % again once it is 10 % above the ceiling without a late scan
+(the link got better: the ceiling is forgotten). The finest candidate whose predicted bytes fit
+the budget is chosen. Decisions cost a few voxel passes (2-3 ms on a simulator scan), paid on the
 robot where the scan already is.
 """
 
@@ -37,6 +41,7 @@ class LinkView:
     acked_bytes_per_s: float  # bytes of the scans acked in the last second; NaN before any
     bytes_per_point: float  # what the last sent scans cost per point on the wire; NaN before any
     period: float  # the sensor's period [s]
+    acks: int = -1  # acks received so far; the budget moves only when it changes (-1: always)
 
 
 def candidate_grid(low: float, high: float, n: int = 12) -> list[float]:
@@ -56,11 +61,15 @@ class LinkAwareScale:
         self.start = min(max(start, self.candidates[0]), self.candidates[-1])
         self.name = "rate"
         self.budget = math.inf
+        self.ceiling = math.inf
         self.last_voxel = self.start
+        self._acks_seen = -1
 
     def reset(self) -> float:
         self.budget = math.inf
+        self.ceiling = math.inf
         self.last_voxel = self.start
+        self._acks_seen = -1
         return self.start
 
     def choose(self, last_t: float, last_v: float) -> float:
@@ -69,13 +78,25 @@ class LinkAwareScale:
         return self.last_voxel
 
     def update_budget(self, link: LinkView) -> float:
+        if link.acks >= 0:
+            if link.acks == self._acks_seen:
+                return self.budget  # nothing new from the edge
+            self._acks_seen = link.acks
         deadline = self.deadline if self.deadline is not None else 1.05 * link.period
         if link.last_t > deadline:
-            carried = link.acked_bytes_per_s * link.period * self.margin
+            per_period = link.acked_bytes_per_s * link.period
+            measured = math.isfinite(per_period) and per_period > 0
+            self.ceiling = per_period if measured else self.budget
             cap = self.budget * 0.8
-            self.budget = min(cap, carried) if math.isfinite(carried) and carried > 0 else cap
+            self.budget = min(cap, per_period * self.margin) if measured else cap
         elif math.isfinite(self.budget):
-            self.budget *= 1.05
+            if self.budget < 0.9 * self.ceiling:
+                self.budget = min(self.budget * 1.05, 0.9 * self.ceiling)
+            elif self.budget <= 1.1 * self.ceiling:
+                self.budget *= 1.005
+            else:
+                self.ceiling = math.inf
+                self.budget *= 1.05
         return self.budget
 
     def choose_cloud(self, points: np.ndarray, link: LinkView) -> tuple[float, np.ndarray]:

@@ -162,6 +162,7 @@ class RobotDaemon:
         with self._lock:
             recs = list(self.ledger.records.values())[-60:]
             last_t = self.ledger.last_interarrival
+            seen = self.ledger.interarrivals_seen
         acked = [r for r in recs if r.get("status") == "acked" and "rtt" in r]
         recent = [r for r in acked if r["send_stamp"] + r["rtt"] >= now - 1.0]
         sent = [r for r in recs if r.get("bytes") and r.get("n_sent")][-5:]
@@ -170,7 +171,8 @@ class RobotDaemon:
             acked_bytes_per_s=float(sum(r["bytes"] for r in recent)) if acked else float("nan"),
             bytes_per_point=(sum(r["bytes"] for r in sent) / sum(r["n_sent"] for r in sent)) if sent
             else float("nan"),
-            period=1.0 / rate)
+            period=1.0 / rate,
+            acks=seen)
 
     def _scan_message(self, reading: Reading, send_stamp: float, n_raw: int, down: np.ndarray) -> wire.Scan:
         s = self.settings

@@ -34,6 +34,7 @@ class ScanLedger:
     dropped_source: Counter[str] = field(default_factory=Counter)
     pending: dict[int, float] = field(default_factory=dict)  # seq -> send stamp
     last_interarrival: float = 0.0  # T_{n-1}; 0 before any ack (the paper's T0)
+    interarrivals_seen: int = 0  # how many acks have brought a T (a policy reacts to new ones)
 
     def produced(self, n: int = 1) -> None:
         self.counters["produced"] += n
@@ -63,6 +64,7 @@ class ScanLedger:
                    keypoints=ack.keypoints, sigma=ack.sigma)
         if math.isfinite(ack.interarrival):
             self.last_interarrival = ack.interarrival
+            self.interarrivals_seen += 1
         if ack.seq in self.pending:
             del self.pending[ack.seq]
             bucket = {"ok": "acked", "dropped": "edge_dropped"}.get(ack.status, "edge_error")
