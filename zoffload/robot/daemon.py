@@ -78,8 +78,13 @@ class RobotDaemon:
             self.keys.any_edge_alive(), self._on_edge_liveliness, history=True
         )
         self._ack_sub = self.session.declare_subscriber(self.keys.scan_ack(s.robot_id), self._on_ack)
+        # BLOCK_FIRST: on a congested link the first scan waits for room (the loop blocks; the
+        # sensor's newer scans are dropped at source and counted) and others are dropped whole.
+        # With DROP every fragment of a large scan gets only 50 ms to find room, so on a narrow
+        # link every large scan loses some fragments and none reassembles (KITTI-360 raw at
+        # 20 Mbps: 0 of 100 scans received with DROP, 16 with BLOCK_FIRST).
         self._scan_pub = self.session.declare_publisher(
-            self.keys.scan(s.robot_id), congestion_control=zenoh.CongestionControl.DROP
+            self.keys.scan(s.robot_id), congestion_control=zenoh.CongestionControl.BLOCK_FIRST
         )
         self._status_pub = self.session.declare_publisher(
             self.keys.robot_status(s.robot_id), congestion_control=zenoh.CongestionControl.DROP
