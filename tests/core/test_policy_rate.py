@@ -64,7 +64,7 @@ def test_rate_policy_is_loaded_by_name() -> None:
 
 
 def test_budget_moves_once_per_new_ack() -> None:
-    p = LinkAwareScale((0.01, 0.2))
+    p = LinkAwareScale((0.01, 0.2), grow_slow=0.007)
     p.budget = 200_000.0
     late = LinkView(0.3, 1_000_000.0, 12.0, 0.1, acks=7)
     p.update_budget(late)
@@ -80,7 +80,8 @@ def test_budget_moves_once_per_new_ack() -> None:
 
 
 def test_growth_is_slow_while_late_scans_are_recent_and_fast_after_a_quiet_spell() -> None:
-    p = LinkAwareScale((0.01, 0.2), quiet=50)
+    p = LinkAwareScale((0.01, 0.2), grow_slow=0.007, quiet=50)
+    assert LinkAwareScale((0.01, 0.2)).grow_slow == 0.05  # off by default: 5 % either way
     p.budget = 100_000.0
     p.update_budget(LinkView(0.3, math.nan, 12.0, 0.1))  # late, nothing measured: 80 %
     assert p.budget == pytest.approx(80_000.0)

@@ -14,13 +14,14 @@ The DQN sees only ``[T, v]``. This policy also uses:
 A byte budget per scan follows the link, updated once per new ack (an old ack seen again by the
 next scan says nothing new): when the edge reports a late scan (T > deadline) the budget drops to
 what the measured delivery rate carries in one sensor period (times ``margin``), and never above
-80 % of its previous value. While scans arrive on time it grows: by 5 % per ack when no scan was
-late in the last ``quiet`` acks (a link that recovers is found again within a second or two), by
-0.7 % per ack while late scans are recent. The growth sets the share of late scans the budget
-settles at on a link whose delay jitters (where a late scan says little about the size): with a
-cut c and a growth g per on-time ack, cuts balance growth at a late share
-p = ln(1+g) / (ln(1+g) - ln(1-c)): 18 % for g = 5 %, 3 % for g = 0.7 % (c = 20 %; the fast
-probes after quiet spells add a point, tests/core/test_policy_rate.py).
+80 % of its previous value. While scans arrive on time it grows by 5 % per ack. On a link whose
+delay jitters some scans are late whatever their size, and cuts then balance growth at a late
+share p = ln(1+g) / (ln(1+g) - ln(1-c)): 18 % for g = 5 %, 3 % for g = 0.7 % (c = 20 %,
+tests/core/test_policy_rate.py). A slower growth while late scans are recent (``grow_slow``,
+after ``quiet`` on-time acks fast again) is available but off by default: at 0.7 % the budget
+recovered too slowly from its cuts (late scans from the link's jitter at the 1.05-period
+deadline come a few times a minute even at 120 Mbps) and stayed at the coarsest size for most of
+a run (README, scale policy results).
 The finest candidate whose predicted bytes fit the budget is chosen. Decisions cost a few voxel
 passes (2-3 ms on a simulator scan), paid on the robot where the scan already is.
 """
@@ -57,7 +58,7 @@ def candidate_grid(low: float, high: float, n: int = 12) -> list[float]:
 class LinkAwareScale:
     def __init__(self, voxel_range: tuple[float, float], deadline: float | None = None,
                  margin: float = 0.85, start: float = 0.05, grow_fast: float = 0.05,
-                 grow_slow: float = 0.007, quiet: int = 50) -> None:
+                 grow_slow: float = 0.05, quiet: int = 50) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.deadline = deadline
         self.margin = margin

@@ -170,10 +170,12 @@ class RobotDaemon:
             seen = self.ledger.interarrivals_seen
         acked = [r for r in recs if r.get("status") == "acked" and "rtt" in r]
         recent = [r for r in acked if r["send_stamp"] + r["rtt"] >= now - 1.0]
+        # a rate needs a full second of acks behind it: two acks in the first 0.2 s are not 10 Hz
+        young = not acked or min(r["send_stamp"] + r["rtt"] for r in acked) > now - 1.0
         sent = [r for r in recs if r.get("bytes") and r.get("n_sent")][-5:]
         return LinkView(
             last_t=last_t,
-            acked_bytes_per_s=float(sum(r["bytes"] for r in recent)) if acked else float("nan"),
+            acked_bytes_per_s=float("nan") if young else float(sum(r["bytes"] for r in recent)),
             bytes_per_point=(sum(r["bytes"] for r in sent) / sum(r["n_sent"] for r in sent)) if sent
             else float("nan"),
             period=1.0 / rate,
