@@ -1,10 +1,11 @@
 """Scan-stream throughput: zoffload's robot -> edge path vs raw Zenoh put/sub, same payloads.
 
 Both sides are separate processes on loopback TCP with shared memory OFF (so every byte crosses
-the socket) and congestion control DROP, sending raw KITTI-360 HDL-64 scans (~1.45 MB encoded) as
-fast as the sender can. Raw: pre-encoded bytes put in a loop to a bare subscriber. zoffload: the
-robot daemon (per-scan NaN filter, wire encoding, put, ack booking) to ``zoffload-edge
---no-mapping`` (decode, stamp, queue, ack). Delivered = scans that reached the receiver.
+the socket), sending raw KITTI-360 HDL-64 scans (~1.45 MB encoded) as fast as the sender can;
+the raw publisher uses congestion control DROP, the robot its own (BLOCK_FIRST for scans).
+Raw: pre-encoded bytes put in a loop to a bare subscriber. zoffload: the robot daemon (per-scan
+NaN filter, wire encoding, put, ack booking) to ``zoffload-edge --no-mapping`` (decode, stamp,
+queue, ack). Delivered = scans that reached the receiver.
 
 Run: python -m benchmarks.bench_stream [seconds]
 """
