@@ -26,6 +26,7 @@ import numpy as np
 
 from zoffload import wire
 from zoffload.config import EdgeSettings, MapperSettings, ZenohSettings, open_session, write_effective
+from zoffload.edge import decode_from_robot
 from zoffload.edge.mapper import RobotMapper, load_kiss_icp, mapper_voxel_size
 from zoffload.keys import Keys
 from zoffload.lifecycle import StopSignal
@@ -123,18 +124,8 @@ class EdgeDaemon:
     # Reception (Zenoh callback thread: stamp, decode, queue; nothing slow)
     def _on_scan(self, sample: Any) -> None:
         arrival = time.monotonic()
-        robot_in_key = self.keys.robot_of(str(sample.key_expr))
-        try:
-            scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
-        except wire.WireError as exc:
-            self.counters["malformed"] += 1
-            log.warning("dropped malformed scan on %s: %s (%d so far)", sample.key_expr, exc,
-                        self.counters["malformed"])
-            return
-        assert isinstance(scan, wire.Scan)
-        if scan.robot != robot_in_key:
-            self.counters["malformed"] += 1
-            log.warning("dropped scan: robot %r in payload, %r in key", scan.robot, robot_in_key)
+        scan = decode_from_robot(sample, wire.Scan, self.keys, self.counters, log, "scan")
+        if scan is None:
             return
         rs = self._robot(scan.robot)
         interarrival = float("nan") if rs.last_arrival is None else arrival - rs.last_arrival

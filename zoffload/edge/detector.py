@@ -24,6 +24,7 @@ import numpy as np
 
 from zoffload import wire
 from zoffload.detect.detector import Detector
+from zoffload.edge import decode_from_robot
 from zoffload.keys import Keys
 
 log = logging.getLogger("zoffload.edge.detector")
@@ -100,18 +101,8 @@ class DetectorService:
     # Zenoh callback: decode, check, queue
     def _on_frame(self, sample: Any) -> None:
         arrival = time.monotonic()
-        robot_in_key = self.keys.robot_of(str(sample.key_expr))
-        try:
-            frame = wire.decode(sample.payload.to_bytes(), expect=wire.Frame)
-        except wire.WireError as exc:
-            self.counters["malformed"] += 1
-            log.warning("dropped malformed frame on %s: %s (%d so far)", sample.key_expr, exc,
-                        self.counters["malformed"])
-            return
-        assert isinstance(frame, wire.Frame)
-        if frame.robot != robot_in_key:
-            self.counters["malformed"] += 1
-            log.warning("dropped frame: robot %r in payload, %r in key", frame.robot, robot_in_key)
+        frame = decode_from_robot(sample, wire.Frame, self.keys, self.counters, log, "frame")
+        if frame is None:
             return
         self.counters["received"] += 1
         dropped = None
