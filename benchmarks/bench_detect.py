@@ -10,34 +10,18 @@ Run: python -m benchmarks.bench_detect
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
-
-import numpy as np
 
 from benchmarks.common import DATA, header, median_ms
 
 
 def ap50(name: str) -> float:
-    import cv2
-
     from zoffload.detect.detector import Detector
-    from zoffload.eval.ap import average_precision
+    from zoffload.eval.detection import person_ap50
 
-    coco = DATA / "coco-person-dev"
-    gt = json.loads((coco / "person_gt.json").read_text())
-    det = Detector(name)
-    dets, gts = [], []
-    for im in gt["images"]:
-        d = det.detect(cv2.imread(str(coco / im["file_name"]))).of_class(0)
-        dets.append((d.boxes, d.scores))
-        g = np.array([a["bbox"] for a in gt["annotations"] if a["image_id"] == im["id"]], np.float32)
-        g = g.reshape(-1, 4)
-        g[:, 2:] += g[:, :2]
-        gts.append(g)
-    return average_precision(dets, gts)
+    return person_ap50(Detector(name), DATA / "coco-person-dev")
 
 
 def latency(name: str, threads: int) -> float:

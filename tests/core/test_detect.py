@@ -3,7 +3,6 @@ person AP50 on the COCO dev images."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ from zoffload.detect import models
 from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms
 from zoffload.detect.models import ModelError, resolve
 from zoffload.eval.ap import average_precision, iou_matrix
+from zoffload.eval.detection import person_ap50
 
 
 def test_gfl_decoder_places_a_box_from_its_bin_distribution() -> None:
@@ -110,19 +110,7 @@ def test_a_file_that_is_not_onnx_is_a_model_error(tmp_path: Path) -> None:
 
 
 def _person_ap50(name: str, coco: Path) -> float:
-    import cv2
-
-    gt = json.loads((coco / "person_gt.json").read_text())
-    det = Detector(name)
-    dets, gts = [], []
-    for im in gt["images"]:
-        d = det.detect(cv2.imread(str(coco / im["file_name"]))).of_class(0)
-        dets.append((d.boxes, d.scores))
-        g = np.array([a["bbox"] for a in gt["annotations"] if a["image_id"] == im["id"]], np.float32)
-        g = g.reshape(-1, 4)
-        g[:, 2:] += g[:, :2]
-        gts.append(g)
-    return average_precision(dets, gts)
+    return person_ap50(Detector(name), coco)
 
 
 @pytest.mark.realdata

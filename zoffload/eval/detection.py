@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from zoffload.eval.ap import average_precision
+from zoffload.sources.images import coco_person_boxes
 
 
 def load_frames(run: Path) -> list[dict[str, Any]]:
@@ -80,3 +81,16 @@ def detection_metrics(run: Path, gt_boxes: Any, n_frames: int | None = None) -> 
         "processed": len(sync_dets),
         "mean_lateness_frames": float(np.mean(lateness)) if lateness else float("nan"),
     }
+
+
+def person_ap50(detector: Any, root: Path) -> float:
+    """Person AP50 of ``detector`` (a ``detect.Detector``) on the annotated COCO images in
+    ``root`` (``person_gt.json``), each image scored against its own boxes."""
+    import cv2
+
+    dets, gts = [], []
+    for path, _, _, boxes in coco_person_boxes(root):
+        d = detector.detect(cv2.imread(str(path))).of_class(0)
+        dets.append((d.boxes, d.scores))
+        gts.append(boxes)
+    return average_precision(dets, gts)

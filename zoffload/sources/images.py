@@ -102,6 +102,28 @@ class _Still:
     boxes: np.ndarray  # (n, 4) x1, y1, x2, y2 in the still's pixels
 
 
+def coco_person_boxes(root: Path) -> list[tuple[Path, int, int, np.ndarray]]:
+    """The images of ``root/person_gt.json`` (COCO format) as (path, width, height, person boxes
+    (category 1) as x1, y1, x2, y2, float32 (n, 4)). ImageSourceError when the file is missing
+    or malformed."""
+    ann = root / "person_gt.json"
+    if not ann.is_file():
+        raise ImageSourceError(f"{root}: no person_gt.json (COCO-format person boxes)")
+    try:
+        gt = json.loads(ann.read_text())
+        out = []
+        for im in gt["images"]:
+            boxes = np.array([a["bbox"] for a in gt["annotations"] if a["image_id"] == im["id"]
+                              and a.get("category_id", 1) == 1], np.float32).reshape(-1, 4)
+            boxes[:, 2:] += boxes[:, :2]
+            out.append((root / im["file_name"], int(im["width"]), int(im["height"]), boxes))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ImageSourceError(f"{ann}: not COCO-format annotations: {exc}") from exc
+    if not out:
+        raise ImageSourceError(f"{ann}: no images")
+    return out
+
+
 class CocoClipSource:
     """Pan/zoom clips over annotated COCO images (COCO-format json, category 1 = person).
 
@@ -114,22 +136,7 @@ class CocoClipSource:
     def __init__(self, root: Path, size: tuple[int, int] = (848, 480), fps: float = 25.0,
                  frames_per_image: int = 50, zoom: tuple[float, float] = (1.0, 0.85),
                  min_visible: float = 0.5) -> None:
-        ann = root / "person_gt.json"
-        if not ann.is_file():
-            raise ImageSourceError(f"{root}: no person_gt.json (COCO-format person boxes)")
-        try:
-            gt = json.loads(ann.read_text())
-            stills = []
-            for im in gt["images"]:
-                boxes = np.array([a["bbox"] for a in gt["annotations"] if a["image_id"] == im["id"]
-                                  and a.get("category_id", 1) == 1], np.float32).reshape(-1, 4)
-                boxes[:, 2:] += boxes[:, :2]
-                stills.append(_Still(root / im["file_name"], int(im["width"]), int(im["height"]), boxes))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ImageSourceError(f"{ann}: not COCO-format annotations: {exc}") from exc
-        if not stills:
-            raise ImageSourceError(f"{ann}: no images")
-        self.stills = stills
+        self.stills = [_Still(*image) for image in coco_person_boxes(root)]
         self.size = size
         self.rate_hz = fps
         self.frames_per_image = frames_per_image
