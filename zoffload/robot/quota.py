@@ -27,29 +27,25 @@ def apply_cpu_quota(cores: float, name: str | None = None) -> str:
     name = name or f"zoffload-robot-{os.getpid()}"
     quota_us = max(1000, int(cores * PERIOD_US))
     pid = str(os.getpid())
-    if (V1 / "cpu.cfs_quota_us").exists():
-        group = V1 / name
+    # v1: period and quota files; v2: one cpu.max ("quota period"). Written in this order.
+    for version, root, probe, limits in (
+        ("v1", V1, "cpu.cfs_quota_us",
+         {"cpu.cfs_period_us": str(PERIOD_US), "cpu.cfs_quota_us": str(quota_us)}),
+        ("v2", V2, "cgroup.controllers", {"cpu.max": f"{quota_us} {PERIOD_US}"}),
+    ):
+        if not (root / probe).exists():
+            continue
+        group = root / name
         try:
             group.mkdir(exist_ok=True)
-            (group / "cpu.cfs_period_us").write_text(str(PERIOD_US))
-            (group / "cpu.cfs_quota_us").write_text(str(quota_us))
+            for file, value in limits.items():
+                (group / file).write_text(value)
             (group / "cgroup.procs").write_text(pid)
-            atexit.register(_leave, V1, group)
+            atexit.register(_leave, root, group)
             log.info("CPU quota %.2f cores via %s", cores, group)
-            return "cgroup-v1"
+            return f"cgroup-{version}"
         except OSError as exc:
-            log.warning("cgroup v1 quota not applied (%s)", exc)
-    if (V2 / "cgroup.controllers").exists():
-        group = V2 / name
-        try:
-            group.mkdir(exist_ok=True)
-            (group / "cpu.max").write_text(f"{quota_us} {PERIOD_US}")
-            (group / "cgroup.procs").write_text(pid)
-            atexit.register(_leave, V2, group)
-            log.info("CPU quota %.2f cores via %s", cores, group)
-            return "cgroup-v2"
-        except OSError as exc:
-            log.warning("cgroup v2 quota not applied (%s)", exc)
+            log.warning("cgroup %s quota not applied (%s)", version, exc)
     log.warning("no writable cgroup: limiting detector threads to %d instead of a CPU quota",
                 math.ceil(cores))
     return "threads"
