@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from zoffload.eval.plots import _plt
+from zoffload.eval.report import save_report
 
 # The thesis' figures this project knows (asynchronous AP50, %); the rest of its tables are not
 # restated here rather than guessed.
@@ -130,11 +131,5 @@ def write_detect_report(folders: list[Path], out: Path | None = None) -> Path:
         f"{', '.join(quota)} core(s). Power: RAPL, n/a where the machine has none. The thesis column",
         "holds the figures the thesis states for that cell; the others are left empty, not guessed.",
         "",
-        "Runs: " + ", ".join(f"`{r['folder']}`" for r in runs),
-        "",
-        *[f"![{p.stem}]({p.name})" for p in figures],
-        "",
     ]
-    path = out / "report.md"
-    path.write_text("\n".join(text))
-    return path
+    return save_report(out, text, runs, figures)

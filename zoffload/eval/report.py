@@ -123,6 +123,15 @@ def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
     return paths
 
 
+def save_report(out: Path, text: list[str], runs: list[dict[str, Any]], figures: list[Path]) -> Path:
+    """``out/report.md``: the text, then the runs it came from and the figures."""
+    tail = ["Runs: " + ", ".join(f"`{r['folder']}`" for r in runs), "",
+            *[f"![{p.stem}]({p.name})" for p in figures], ""]
+    path = out / "report.md"
+    path.write_text("\n".join([*text, *tail]))
+    return path
+
+
 def write_report(folders: list[Path], out: Path | None = None) -> Path:
     runs = [load_run(f) for f in folders]
     out = out or Path(os.path.commonpath([str(f.resolve()) for f in folders]))
@@ -143,11 +152,5 @@ def write_report(folders: list[Path], out: Path | None = None) -> Path:
         "",
         "Trajectory reference: " + "; ".join(refs) + ".",
         "",
-        "Runs: " + ", ".join(f"`{r['folder']}`" for r in runs),
-        "",
-        *[f"![{p.stem}]({p.name})" for p in figures],
-        "",
     ]
-    path = out / "report.md"
-    path.write_text("\n".join(text))
-    return path
+    return save_report(out, text, runs, figures)
