@@ -11,11 +11,11 @@ import time
 import numpy as np
 
 from benchmarks.common import header, kitti_dir
-from zoffload.coding import decode_q16z, encode_q16z, quant_step
-from zoffload.robot.daemon import drop_non_finite
+from zoffload.mapping.cloud import drop_non_finite
+from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol.coding import decode_q16z, encode_q16z, quant_step
 from zoffload.sources.kitti import KittiBinSource
 from zoffload.sources.simulated import SimulatedSource
-from zoffload.voxel import voxel_downsample
 
 SIZES = (0.0, 0.01, 0.03, 0.05, 0.07, 0.1, 0.2, 0.3, 0.5)
 

@@ -19,7 +19,7 @@ from benchmarks.common import DATA, header, median_ms
 
 def ap50(name: str) -> float:
     from zoffload.detect.detector import Detector
-    from zoffload.eval.detection import person_ap50
+    from zoffload.lab.eval.detection import person_ap50
 
     return person_ap50(Detector(name), DATA / "coco-person-dev")
 
@@ -36,7 +36,7 @@ def latency(name: str, threads: int) -> float:
 def quota_latency(name: str, cores: float) -> float:
     """Latency in a child process placed under a CFS quota of ``cores``."""
     code = (
-        "from zoffload.robot.quota import apply_cpu_quota; import sys; "
+        "from zoffload.runtime.quota import apply_cpu_quota; import sys; "
         f"how = apply_cpu_quota({cores}); "
         "from benchmarks.bench_detect import latency; "
         f"print(how, latency({name!r}, 1))"

@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import header, kitti_scans
-from zoffload import wire
-from zoffload.config import ZenohSettings, open_session
-from zoffload.edge.mapper import mapper_voxel_size
-from zoffload.keys import Keys
-from zoffload.net import free_tcp_port, loopback_endpoint
-from zoffload.voxel import voxel_downsample
+from zoffload.mapping.mapper import mapper_voxel_size
+from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol import wire
+from zoffload.protocol.keys import Keys
+from zoffload.runtime.config import ZenohSettings
+from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
 
 def direct(scans: list[np.ndarray], voxel: float) -> list[float]:

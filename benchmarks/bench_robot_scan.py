@@ -10,10 +10,10 @@ import statistics
 import time
 
 from benchmarks.common import header, kitti_dir
-from zoffload.config import RobotSettings, ZenohSettings, open_session
-from zoffload.net import free_tcp_port, loopback_endpoint
-from zoffload.robot.daemon import RobotDaemon
+from zoffload.robot.scans import RobotDaemon
 from zoffload.robot.sensor import Reading
+from zoffload.runtime.config import RobotSettings, ZenohSettings
+from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 from zoffload.sources.kitti import KittiBinSource
 
 

@@ -22,10 +22,10 @@ import numpy as np
 import zenoh
 
 from benchmarks.common import header, kitti_dir
-from zoffload import wire
-from zoffload.config import RobotSettings, ZenohSettings, open_session
-from zoffload.net import free_tcp_port, loopback_endpoint
-from zoffload.robot.daemon import RobotDaemon
+from zoffload.protocol import wire
+from zoffload.robot.scans import RobotDaemon
+from zoffload.runtime.config import RobotSettings, ZenohSettings
+from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.kitti import KittiBinSource
 

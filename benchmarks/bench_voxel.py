@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from benchmarks.common import header, kitti_scans, median_ms
-from zoffload.voxel import voxel_downsample, warmup
+from zoffload.mapping.voxel import voxel_downsample, warmup
 
 
 def open3d_grid(points: np.ndarray, v: float) -> np.ndarray:

@@ -10,8 +10,8 @@ import sys
 import threading
 import time
 
-from zoffload.config import ZenohSettings, open_session
-from zoffload.net import loopback_endpoint
+from zoffload.runtime.config import ZenohSettings
+from zoffload.runtime.session import loopback_endpoint, open_session
 
 
 def main() -> None:

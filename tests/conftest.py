@@ -23,7 +23,7 @@ def kitti_dir() -> Path:
 
 @pytest.fixture
 def free_port() -> int:
-    from zoffload.net import free_tcp_port
+    from zoffload.runtime.session import free_tcp_port
 
     return free_tcp_port()
 

@@ -8,11 +8,11 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from zoffload import runner
-from zoffload.config import EdgeSettings, ZenohSettings, open_session
-from zoffload.edge.daemon import EdgeDaemon
-from zoffload.keys import Keys
-from zoffload.net import loopback_endpoint
+from zoffload.edge.server import EdgeDaemon
+from zoffload.lab import runner
+from zoffload.protocol.keys import Keys
+from zoffload.runtime.config import EdgeSettings, ZenohSettings
+from zoffload.runtime.session import loopback_endpoint, open_session
 
 
 def listen_on(port: int) -> ZenohSettings:

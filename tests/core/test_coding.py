@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from zoffload import wire
-from zoffload.coding import CodingError, decode_q16z, encode_q16z, quant_step
+from zoffload.protocol import wire
+from zoffload.protocol.coding import CodingError, decode_q16z, encode_q16z, quant_step
 from zoffload.sources.simulated import SimulatedSource
 
 

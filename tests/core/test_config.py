@@ -6,15 +6,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from zoffload.config import (
+from zoffload.runtime.config import (
     EdgeSettings,
     RobotSettings,
     ZenohSettings,
     load_settings,
     write_effective,
-    zenoh_config,
 )
-from zoffload.errors import ConfigError, ZenohSessionError
+from zoffload.runtime.errors import ConfigError, ZenohSessionError
+from zoffload.runtime.session import zenoh_config
 
 
 def test_precedence_defaults_file_env_flags(tmp_path: Path) -> None:
@@ -82,8 +82,8 @@ def test_zenoh_config_error_is_clear() -> None:
 
 
 def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
-    from zoffload.config import zenoh_config
-    from zoffload.edge.daemon import DROP_WAIT_KEY, edge_zenoh
+    from zoffload.edge.server import DROP_WAIT_KEY, edge_zenoh
+    from zoffload.runtime.session import zenoh_config
 
     z = edge_zenoh(ZenohSettings(cfg=['mode:"peer"']))
     assert z.cfg[0] == f"{DROP_WAIT_KEY}:50000" and z.cfg[1] == 'mode:"peer"'

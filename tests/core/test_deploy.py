@@ -10,8 +10,8 @@ from urllib.parse import urlparse
 
 import yaml
 
-from zoffload.cli import edge_parser, edge_settings, robot_parser, robot_settings
-from zoffload.config import load_settings
+from zoffload.cli.main import edge_parser, edge_settings, robot_parser, robot_settings
+from zoffload.runtime.config import load_settings
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 COMPOSE = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
@@ -63,7 +63,7 @@ def test_commands_parse_with_the_cli_and_configs_load() -> None:
 
 
 def test_robot_and_edge_share_a_namespace_and_write_to_volumes() -> None:
-    from zoffload.config import EdgeSettings, RobotSettings
+    from zoffload.runtime.config import EdgeSettings, RobotSettings
 
     edge = load_settings(EdgeSettings, DEPLOY / "edge.yaml")
     robot = load_settings(RobotSettings, DEPLOY / "robot.yaml")

@@ -11,8 +11,8 @@ import pytest
 from zoffload.detect import models
 from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms
 from zoffload.detect.models import ModelError, resolve
-from zoffload.eval.ap import average_precision, iou_matrix
-from zoffload.eval.detection import person_ap50
+from zoffload.lab.eval.ap import average_precision, iou_matrix
+from zoffload.lab.eval.detection import person_ap50
 
 
 def test_gfl_decoder_places_a_box_from_its_bin_distribution() -> None:

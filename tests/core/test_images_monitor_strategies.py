@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zoffload import wire
-from zoffload.edge.detector import decode_image
-from zoffload.monitor import ByteRate, CpuMonitor, MovingAverage, RaplMonitor
+from zoffload.edge.detection import decode_image
 from zoffload.policy.offload import EDGE, HOLD, LOCAL, OffloadState, make_strategy
+from zoffload.protocol import wire
+from zoffload.runtime.monitor import ByteRate, CpuMonitor, MovingAverage, RaplMonitor
 from zoffload.sources.images import CocoClipSource, ImageSourceError, open_image_source
 
 cv2 = pytest.importorskip("cv2")

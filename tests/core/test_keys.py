@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 
-from zoffload.keys import Keys
+from zoffload.protocol.keys import Keys
 
 
 def test_layout_and_prefixes() -> None:

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoffload import wire
+from zoffload.protocol import wire
 from zoffload.robot.ledger import ScanLedger
 
 

@@ -3,10 +3,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from zoffload.edge.mapper import RobotMapper, mapper_voxel_size
-from zoffload.eval.trajectory import trajectory_error
+from zoffload.lab.eval.trajectory import trajectory_error
+from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
+from zoffload.mapping.voxel import VoxelSet, voxel_downsample
 from zoffload.sources.simulated import SimulatedSource
-from zoffload.voxel import VoxelSet, voxel_downsample
 
 pytest.importorskip("kiss_icp")
 
@@ -64,7 +64,7 @@ def test_voxel_set_transforms_by_pose() -> None:
 
 
 def test_se3_power() -> None:
-    from zoffload.edge.mapper import se3_power
+    from zoffload.mapping.se3 import se3_power
 
     c, s = np.cos(0.05), np.sin(0.05)
     step = np.array([[c, -s, 0, 0.12], [s, c, 0, 0.01], [0, 0, 1, 0], [0, 0, 0, 1]])

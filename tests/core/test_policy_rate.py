@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.policy.onnx_scale import load_scale_policy
 from zoffload.policy.rate import LinkAwareScale, LinkView, candidate_grid
 from zoffload.sources.simulated import SimulatedSource
-from zoffload.voxel import voxel_downsample
 
 
 def _scan() -> np.ndarray:

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.robot import quota
+from zoffload.runtime import quota
 
 CHILD = """
 import json, os, time
-from zoffload.robot.quota import apply_cpu_quota
+from zoffload.runtime.quota import apply_cpu_quota
 how = apply_cpu_quota(0.2, name="zoffload-test-%d" % os.getpid())
 t0, c0 = time.monotonic(), time.process_time()
 while time.monotonic() - t0 < 1.0:

@@ -2,9 +2,9 @@ from __future__ import annotations
 
 import pytest
 
-from zoffload.errors import ConfigError
-from zoffload.eval.report import SEED_TABLE_I, table_markdown
-from zoffload.experiment import policy_voxel
+from zoffload.lab.eval.report import SEED_TABLE_I, table_markdown
+from zoffload.lab.scan_experiment import policy_voxel
+from zoffload.runtime.errors import ConfigError
 
 
 def test_policies() -> None:

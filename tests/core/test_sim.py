@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoffload.sim import VLP16, cast_scan, warehouse, warehouse_loop
-from zoffload.sim.scene import Scene
+from zoffload.sources.sim import VLP16, cast_scan, warehouse, warehouse_loop
+from zoffload.sources.sim.scene import Scene
 from zoffload.sources.simulated import SimulatedSource
 
 

@@ -79,7 +79,7 @@ def test_replay_orders() -> None:
 
 def test_map_export_formats(tmp_path: Path) -> None:
     o3d = pytest.importorskip("open3d")
-    from zoffload.edge.store import write_point_cloud
+    from zoffload.mapping.export import write_point_cloud
 
     pts = np.random.default_rng(3).random((500, 3)).astype(np.float32)
     for ext in ("ply", "pcd"):

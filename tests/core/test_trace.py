@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.link.trace import TraceError, load_trace, parse_trace, shipped_traces
+from zoffload.lab.link.trace import TraceError, load_trace, parse_trace, shipped_traces
 
 HEAD = "time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n"
 

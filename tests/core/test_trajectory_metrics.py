@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoffload.eval.trajectory import trajectory_error
+from zoffload.lab.eval.trajectory import trajectory_error
 
 
 def line(n: int, step: float, offset: np.ndarray | None = None) -> np.ndarray:

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from zoffload.mapping.voxel import voxel_downsample, voxel_downsample_counts
 from zoffload.sources.kitti import read_kitti_bin
-from zoffload.voxel import voxel_downsample, voxel_downsample_counts
 
 
 def reference_grid(points: np.ndarray, v: float) -> dict[tuple[int, int, int], np.ndarray]:

@@ -4,7 +4,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from zoffload import wire
+from zoffload.protocol import wire
 
 
 def scan(**over: object) -> wire.Scan:

@@ -11,10 +11,10 @@ import pytest
 import zenoh
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
-from zoffload import wire
-from zoffload.config import EdgeSettings, MapperSettings
+from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol import wire
+from zoffload.runtime.config import EdgeSettings, MapperSettings
 from zoffload.sources.simulated import SimulatedSource
-from zoffload.voxel import voxel_downsample
 
 pytest.importorskip("kiss_icp")
 SRC = SimulatedSource()

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from tests.helpers import connect_to, listen_on, running_edge
-from zoffload.config import EdgeSettings, RobotSettings
-from zoffload.robot.daemon import RobotDaemon
+from zoffload.robot.scans import RobotDaemon
+from zoffload.runtime.config import EdgeSettings, RobotSettings
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.simulated import SimulatedSource
 

@@ -14,8 +14,8 @@ import pytest
 
 from tests.helpers import KEYS, client, wait_token
 from tests.system.procs import Proc, script, session_args
-from zoffload.edge.mapper import RobotMapper
-from zoffload.eval.trajectory import trajectory_error
+from zoffload.lab.eval.trajectory import trajectory_error
+from zoffload.mapping.mapper import RobotMapper
 from zoffload.sources.kitti import KittiBinSource
 
 pytestmark = [pytest.mark.system, pytest.mark.realdata]

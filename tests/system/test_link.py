@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.net import free_tcp_port
+from zoffload.runtime.session import free_tcp_port
 
 pytestmark = pytest.mark.system
 HEAD = "time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n"

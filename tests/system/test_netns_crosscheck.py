@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.link import netns
-from zoffload.net import free_tcp_port
+from zoffload.lab.link import netns
+from zoffload.runtime.session import free_tcp_port
 
 pytestmark = pytest.mark.system
 RATE = 20.0
@@ -19,7 +19,7 @@ SECONDS = 4
 
 
 def probe(*args: str) -> list[str]:
-    return [sys.executable, "-m", "zoffload.link.probe", *args]
+    return [sys.executable, "-m", "zoffload.lab.link.probe", *args]
 
 
 def measure_netns() -> list[float]:

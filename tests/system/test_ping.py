@@ -8,9 +8,9 @@ import time
 import pytest
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
-from zoffload import wire
-from zoffload.config import DetectorSettings, EdgeSettings, MapperSettings
-from zoffload.monitor import Pinger
+from zoffload.protocol import wire
+from zoffload.runtime.config import DetectorSettings, EdgeSettings, MapperSettings
+from zoffload.runtime.monitor import Pinger
 
 pytestmark = pytest.mark.system
 

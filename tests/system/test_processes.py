@@ -15,8 +15,8 @@ import pytest
 
 from tests.helpers import KEYS, client, wait_token
 from tests.system.procs import Proc, script, session_args
-from zoffload import wire
-from zoffload.errors import ExitCode
+from zoffload.protocol import wire
+from zoffload.runtime.errors import ExitCode
 
 pytestmark = pytest.mark.system
 pytest.importorskip("kiss_icp")

@@ -16,8 +16,9 @@ import yaml
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
 from tests.system.procs import Proc, script, session_args
-from zoffload import runner, wire
-from zoffload.config import DetectorSettings, EdgeSettings, MapperSettings
+from zoffload.lab import runner
+from zoffload.protocol import wire
+from zoffload.runtime.config import DetectorSettings, EdgeSettings, MapperSettings
 
 pytestmark = [pytest.mark.system, pytest.mark.realdata]
 

@@ -161,7 +161,7 @@ def greedy_actions(net: Any, states: np.ndarray) -> np.ndarray:
 
 
 def save_curves(path: Path, result: TrainResult) -> Path:
-    from zoffload.eval.plots import _plt
+    from zoffload.lab.eval.plots import _plt
 
     plt = _plt()
     fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=False)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from zoffload.monitor import MovingAverage
+from zoffload.policy.smoothing import MovingAverage
 
 LOCAL, EDGE, HOLD = "local", "edge", "hold"  # hold: the frame is skipped (newer ones follow)
 

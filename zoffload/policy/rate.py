@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from zoffload.voxel import voxel_downsample
+from zoffload.mapping.voxel import voxel_downsample
 
 
 @dataclass(frozen=True)

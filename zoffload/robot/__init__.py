@@ -1,1 +1,1 @@
-"""The robot daemon: sensor replay, per-scan downsampling, offloading, counters."""
+"""The robot server: pipelines (scan streamer, camera offloader) over one Zenoh session."""

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from zoffload import wire
+from zoffload.protocol import wire
 
 RECORD_FIELDS = (
     "seq", "index", "capture_stamp", "voxel", "n_raw", "n_nonfinite", "n_sent", "bytes",

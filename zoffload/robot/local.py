@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from zoffload.edge.mapper import RobotMapper, mapper_voxel_size
-from zoffload.robot.daemon import drop_non_finite
+from zoffload.mapping.cloud import drop_non_finite
+from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.robot.sensor import SensorThread
 from zoffload.sources.base import ScanSource
-from zoffload.voxel import voxel_downsample
 
 
 @dataclass

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoffload.sim import VLP16, LidarModel, cast_scan, warehouse, warehouse_loop
 from zoffload.sources.base import ScanFrame
+from zoffload.sources.sim import VLP16, LidarModel, cast_scan, warehouse, warehouse_loop
 
 
 class SimulatedSource:

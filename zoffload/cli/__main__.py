@@ -1,0 +1,5 @@
+import sys
+
+from zoffload.cli.main import main
+
+sys.exit(main())

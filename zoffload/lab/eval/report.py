@@ -1,0 +1,156 @@
+"""``zoffload report``: experiment folders -> a markdown table in the seed's layout + PNG plots."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from zoffload.lab.eval.plots import _plt
+
+# The scale-optimisation paper's Table I (LeGO-LOAM map; "delay" = its bad-link location).
+SEED_TABLE_I: list[dict[str, Any]] = [
+    {"policy": "Local (paper)", "received": "954", "T_mean": 0.10, "map_points": 229_213},
+    {"policy": "Raw offload, bad link (paper)", "received": "528", "T_mean": 0.184, "map_points": 92_644},
+    {"policy": "RL offload, bad link (paper)", "received": "823", "T_mean": 0.118, "map_points": 165_184},
+]
+
+
+def load_run(folder: Path) -> dict[str, Any]:
+    res = json.loads((folder / "results.json").read_text())
+    res["folder"] = folder
+    with open(folder / "scans.csv") as f:
+        res["records"] = list(csv.DictReader(f))
+    link = folder / "link.csv"
+    if link.exists():
+        with open(link) as f:
+            res["link"] = list(csv.DictReader(f))
+    sample = folder / "map_sample.npy"
+    res["map_sample"] = np.load(sample) if sample.exists() else None
+    return res
+
+
+def _fmt(x: Any, spec: str, none: str = "–") -> str:
+    return none if x is None else format(x, spec)
+
+
+def table_markdown(runs: list[dict[str, Any]]) -> str:
+    local = {r["scans"]: r for r in runs if r["policy"] == "local"}
+    lines = [
+        "| run | trace | S (kB/scan) | points before → after | received / sensor scans (sent) | T̄ (s) "
+        "| T ≤ 0.11 s | map points | vs local | trajectory error (m) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        ref = local.get(r["scans"])
+        vs = (f"{100 * (r['map_points'] / ref['map_points'] - 1):+.0f} %"
+              if ref and ref is not r and ref["map_points"] else "")
+        err = r.get("trajectory_error") or {}
+        lines.append(
+            f"| {r['policy']} | {r['trace'] if r['policy'] != 'local' else '(no network)'} "
+            f"| {_fmt(r['S_kB'], '.0f')} "
+            f"| {_fmt(r['points_before'], ',.0f')} → {_fmt(r['points_after'], ',.0f')} "
+            f"| {r['scans_received']} / {r.get('scans_produced', r['scans_sent'])} ({r['scans_sent']}) "
+            f"| {_fmt(r['T_mean'], '.3f')} "
+            f"| {_fmt(100 * r['T_le_0.11'] if r['T_le_0.11'] is not None else None, '.0f')} % "
+            f"| {r['map_points']:,} | {vs} | {_fmt(err.get('ate_rmse'), '.3f')} |"
+        )
+    for s in SEED_TABLE_I:
+        lines.append(f"| {s['policy']} | | | | {s['received']} | {s['T_mean']:.3f} | | {s['map_points']:,} "
+                     f"| {100 * (s['map_points'] / SEED_TABLE_I[0]['map_points'] - 1):+.0f} % | |")
+    return "\n".join(lines)
+
+
+def _times(r: dict[str, Any]) -> np.ndarray:
+    stamps = np.array([float(x["capture_stamp"]) for x in r["records"]])
+    return stamps - stamps[0] if len(stamps) else stamps
+
+
+def _save(plt: Any, fig: Any, path: Path, dpi: int = 100) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def plot_runs(runs: list[dict[str, Any]], out: Path) -> list[Path]:
+    plt = _plt()
+    paths = []
+    # T over time, with the link trace underneath
+    fig, (ax, axl) = plt.subplots(2, 1, figsize=(10, 7), sharex=True, gridspec_kw={"height_ratios": [2, 1]})
+    for r in runs:
+        t = _times(r)
+        T = np.array([float(x["interarrival"]) if x.get("interarrival") not in (None, "") else np.nan
+                      for x in r["records"]])
+        ax.plot(t, T, ".", ms=3, label=f"{r['policy']} ({r['trace'] if r['policy'] != 'local' else 'local'})")
+        if r.get("link"):
+            sec = np.array([int(x["second"]) for x in r["link"]])
+            axl.step(sec, [float(x["trace_up_mbps"]) * (1 - int(x["outage"])) for x in r["link"]],
+                     where="post", color="0.3", lw=1)
+            axl.plot(sec + 0.5, [float(x["up_mbps"]) for x in r["link"]], ".", ms=3,
+                     label=f"delivered, {r['policy']}")
+    ax.axhline(0.11, color="r", lw=0.8, ls="--", label="T = 0.11 s")
+    ax.set_ylabel("inter-arrival T at the edge [s]")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    axl.set_ylabel("link up [Mbps]")
+    axl.set_xlabel("time [s]")
+    axl.legend(fontsize=7)
+    paths.append(_save(plt, fig, out / "T_over_time.png"))
+    # Points per scan
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for r in runs:
+        n = [float(x["n_sent"]) if x.get("n_sent") not in (None, "") else np.nan for x in r["records"]]
+        ax.plot(_times(r), n, lw=1, label=r["policy"])
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("points per scan sent")
+    ax.legend(fontsize=8)
+    paths.append(_save(plt, fig, out / "points_per_scan.png"))
+    # Top view of each map
+    with_maps = [r for r in runs if r["map_sample"] is not None and len(r["map_sample"])]
+    if with_maps:
+        fig, axes = plt.subplots(1, len(with_maps), figsize=(5 * len(with_maps), 5), squeeze=False)
+        for ax, r in zip(axes[0], with_maps, strict=True):
+            m = r["map_sample"]
+            ax.scatter(m[:, 0], m[:, 1], s=0.1, c="0.3", linewidths=0)
+            ax.set_aspect("equal")
+            ax.set_title(f"{r['policy']}: {r['map_points']:,} pts", fontsize=9)
+        paths.append(_save(plt, fig, out / "maps.png", dpi=90))
+    return paths
+
+
+def save_report(out: Path, text: list[str], runs: list[dict[str, Any]], figures: list[Path]) -> Path:
+    """``out/report.md``: the text, then the runs it came from and the figures."""
+    tail = ["Runs: " + ", ".join(f"`{r['folder']}`" for r in runs), "",
+            *[f"![{p.stem}]({p.name})" for p in figures], ""]
+    path = out / "report.md"
+    path.write_text("\n".join([*text, *tail]))
+    return path
+
+
+def write_report(folders: list[Path], out: Path | None = None) -> Path:
+    runs = [load_run(f) for f in folders]
+    out = out or Path(os.path.commonpath([str(f.resolve()) for f in folders]))
+    if out.resolve() in [f.resolve() for f in folders] and len(folders) == 1:
+        out = folders[0]
+    out.mkdir(parents=True, exist_ok=True)
+    figures = plot_runs(runs, out)
+    refs = sorted({r["trajectory_reference"] for r in runs if r.get("trajectory_reference")})
+    text = [
+        "# Scan offloading: Table I layout",
+        "",
+        table_markdown(runs),
+        "",
+        "S: mean encoded scan size sent; received: scans that reached the edge, of those the sensor",
+        "produced (and of those the robot sent: it holds a scan back while 3 are unanswered); T̄: mean",
+        "inter-arrival at the edge (edge clock); the paper's rows are its own figures (LeGO-LOAM map",
+        "points, a real Wi-Fi link), ours come from the runs listed below.",
+        "",
+        "Trajectory reference: " + "; ".join(refs) + ".",
+        "",
+    ]
+    return save_report(out, text, runs, figures)

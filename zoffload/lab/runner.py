@@ -1,0 +1,232 @@
+"""Running zoffload programs as child processes: shared by ``zoffload demo`` and the experiments."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from zoffload.protocol import wire
+from zoffload.protocol.keys import Keys
+from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings, write_effective
+from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
+
+
+class Spawned:
+    """A zoffload program in its own process, with its output in a log file."""
+
+    def __init__(self, name: str, args: list[str], log_path: Path) -> None:
+        self.name = name
+        self.log_path = log_path
+        self._log = open(log_path, "w")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "zoffload.cli", *args],
+                                     stdout=self._log, stderr=subprocess.STDOUT, env=env)
+
+    def stop(self, timeout: float = 20.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return int(self.proc.returncode)
+
+    def tail(self, n: int = 15) -> str:
+        return "".join(self.log_path.read_text().splitlines(keepends=True)[-n:])
+
+
+def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60) -> Any:
+    """Open a session once ``owner`` listens (its port opens a moment after it starts)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if owner.proc.poll() is not None:
+            return None
+        try:
+            return open_session(z)
+        except Exception:
+            time.sleep(0.3)
+    return None
+
+
+def wait_token(session: Any, key: str, timeout: float) -> bool:
+    seen = threading.Event()
+    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
+    try:
+        return seen.wait(timeout)
+    finally:
+        sub.undeclare()
+
+
+class StatusWatcher:
+    """Keeps the latest robot status values, for progress lines."""
+
+    def __init__(self, session: Any, keys: Keys, robot: str) -> None:
+        self.values: dict[str, float] = {}
+        self._sub = session.declare_subscriber(keys.robot_status(robot), self._on)
+
+    def _on(self, sample: Any) -> None:
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        except wire.WireError:
+            return
+        assert isinstance(msg, wire.Status)
+        self.values.update(msg.values)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
+    return (
+        f"[{elapsed:5.1f} s] scans {int(st.get('published', 0))}/{total} sent, "
+        f"{int(st.get('acked', 0))} acked, {int(st.get('lost', 0))} lost | "
+        f"voxel {st.get('voxel', 0):.2f} m | T {st.get('last_T', 0):.3f} s | "
+        f"RTT {st.get('rtt_ms', float('nan')):.0f} ms | map {int(st.get('map_points', 0)):,} pts"
+    )
+
+
+def frames_line(st: dict[str, float], elapsed: float, total: int) -> str:
+    """Progress of a camera run (the image offloader's status values)."""
+    return (
+        f"[{elapsed:5.1f} s] frames {int(st.get('frames_in', 0))}/{total} | local "
+        f"{int(st.get('local_done', 0))}, edge {int(st.get('edge_done', 0))}, dropped "
+        f"{int(st.get('dropped_camera', 0) + st.get('dropped_stale', 0) + st.get('dropped_window', 0))}, "
+        f"lost {int(st.get('edge_lost', 0))} | "
+        f"CPU {st.get('cpu_process', float('nan')):.0f} % | {st.get('mbps_out', float('nan')):.0f} Mbps"
+        f"{' | FALLBACK' if st.get('fallback') else ''}"
+    )
+
+
+def watch(robot_p: Spawned, status: StatusWatcher, total: int, limit_s: float,
+          line: Callable[[dict[str, float], float, int], str] = progress_line) -> int:
+    """Show progress until the robot process exits; returns its exit code."""
+    tty = sys.stdout.isatty()
+    start = time.monotonic()
+    next_plain = start
+    while robot_p.proc.poll() is None:
+        time.sleep(0.25)
+        elapsed = time.monotonic() - start
+        text = line(status.values, elapsed, total)
+        if tty:
+            print("\r" + text.ljust(120), end="", flush=True)
+        elif time.monotonic() >= next_plain:
+            print(text, flush=True)
+            next_plain = time.monotonic() + 5
+        if elapsed > limit_s:
+            print("\nthe robot did not finish in time; stopping it")
+            robot_p.stop()
+    if tty:
+        print()
+    return int(robot_p.proc.returncode)
+
+
+def link_clock_start(log: Path) -> float | None:
+    """Wall time at which ``zoffload link`` started its trace clock (its first connection)."""
+    for line in log.read_text().splitlines() if log.exists() else []:
+        if line.startswith("clock") and "wall_start=" in line:
+            return float(line.split("wall_start=")[1])
+    return None
+
+
+def fetch_map(session: Any, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
+    for reply in session.get(keys.map(robot), timeout=timeout):
+        if reply.ok is not None:
+            msg = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
+            assert isinstance(msg, wire.MapReply)
+            return msg
+    return None
+
+
+# The robot's TCP send buffer behind the emulator: small, so a slow link reaches Zenoh's congestion
+# control instead of hiding megabytes in the kernel.
+ROBOT_SNDBUF = 65536
+
+
+class StartError(RuntimeError):
+    """The edge process did not start or did not announce itself."""
+
+
+@dataclass
+class OffloadRun:
+    robot_code: int
+    reply: wire.MapReply | None
+    cut_short: bool
+
+
+def loopback_zenoh(**kw: Any) -> ZenohSettings:
+    """Session settings for local runs: explicit endpoints, no multicast scouting, no shared memory
+    (same-host shared memory would carry payloads around any emulated link)."""
+    return ZenohSettings(multicast_scouting=False, shared_memory=False, **kw)
+
+
+def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
+                link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
+                line: Callable[[dict[str, float], float, int], str] = progress_line,
+                fetch: bool = True) -> OffloadRun:
+    """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
+
+    The edge listens; the robot connects through the emulator in client mode (a peer could learn
+    the edge's own address and connect around it); this process watches over a direct session and
+    fetches the map at the end. The Zenoh settings of ``edge`` and ``robot`` are set here. With
+    ``keep_interrupted``, Ctrl-C stops the robot gracefully (it writes its records) and the run
+    returns with ``cut_short``; otherwise the interrupt propagates after the processes are stopped.
+    """
+    edge_port, link_port = free_tcp_port(), free_tcp_port()
+    edge = edge.model_copy(update={"zenoh": loopback_zenoh(listen=[loopback_endpoint(edge_port)])})
+    direct = loopback_zenoh(connect=[loopback_endpoint(edge_port)])
+    robot_z = direct if trace is None else loopback_zenoh(
+        mode="client", connect=[loopback_endpoint(link_port)],
+        cfg=[f"transport/link/tcp/so_sndbuf:{ROBOT_SNDBUF}"])
+    robot = robot.model_copy(update={"zenoh": robot_z})
+    write_effective(edge, out / "edge.yaml")
+    write_effective(robot, out / "robot.yaml")
+    keys = Keys(robot.namespace)
+    edge_p = Spawned("edge", ["edge", "--settings", str(out / "edge.yaml")], out / "edge.log")
+    link_p = None
+    if trace is not None:
+        link_p = Spawned("link", ["link", "--trace", trace, "--listen-port", str(link_port), "--target",
+                                  f"127.0.0.1:{edge_port}", "--report", str(out / "link.csv"), *link_args],
+                         out / "link.log")
+    robot_p: Spawned | None = None
+    try:
+        session = connect_when_listening(direct, edge_p)
+        if session is None:
+            raise StartError("the edge did not start:\n" + edge_p.tail())
+        with session:
+            status = StatusWatcher(session, keys, robot.robot_id)
+            if not wait_token(session, keys.any_edge_alive(), 30):
+                raise StartError("the edge did not come up:\n" + edge_p.tail())
+            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
+            cut_short = False
+            try:
+                code = watch(robot_p, status, total, limit_s, line)
+            except KeyboardInterrupt:
+                if not keep_interrupted:
+                    raise
+                print("\ninterrupted: stopping the robot and writing what was measured", flush=True)
+                cut_short = True
+                code = robot_p.stop()
+            if code != 0:
+                print(f"\nthe robot exited with code {code}:\n" + robot_p.tail())
+            reply = (fetch_map(session, keys, robot.robot_id)
+                     if fetch and (code == 0 or keep_interrupted) else None)
+            status.close()
+    finally:
+        if robot_p is not None:
+            robot_p.stop()
+        if link_p is not None:
+            link_p.stop()
+        edge_code = edge_p.stop()
+    if edge_code != 0:
+        print(f"the edge exited with code {edge_code}:\n" + edge_p.tail())
+    return OffloadRun(code, reply, cut_short)

@@ -1,0 +1,2 @@
+"""Process plumbing: settings, errors and exit codes, lifecycle and signals, Zenoh sessions,
+monitors, CPU quota, the router."""

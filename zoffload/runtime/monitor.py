@@ -1,0 +1,135 @@
+"""State monitors the offloading strategies read: CPU (psutil), RAPL energy, bandwidth from byte
+counters, ping-pong latency, and the simple moving averages the thesis smooths them with.
+
+Nothing here is faked: RAPL is read from ``/sys/class/powercap`` and reported as unavailable where
+that does not exist (containers, VMs, non-Intel machines); CPU is psutil's reading of this process
+and of the whole machine.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from zoffload.policy.smoothing import MovingAverage
+
+log = logging.getLogger("zoffload.runtime.monitor")
+
+
+class CpuMonitor:
+    """CPU use in percent of the whole machine (all cores = 100) and of this process (one core =
+    100, psutil's convention, so a process can read up to 100 x cores)."""
+
+    def __init__(self) -> None:
+        self.proc = psutil.Process()
+        psutil.cpu_percent(None)
+        self.proc.cpu_percent(None)
+
+    def sample(self) -> tuple[float, float]:
+        return float(psutil.cpu_percent(None)), float(self.proc.cpu_percent(None))
+
+
+class RaplMonitor:
+    """Package energy from Intel RAPL (``/sys/class/powercap/intel-rapl:N/energy_uj``); average
+    power in watts between samples. ``available`` is False where the counters do not exist."""
+
+    def __init__(self, root: Path = Path("/sys/class/powercap")) -> None:
+        self.files = sorted(root.glob("intel-rapl:[0-9]*/energy_uj")) if root.is_dir() else []
+        self.files = [f for f in self.files if self._read(f) is not None]
+        self.available = bool(self.files)
+        self._last: tuple[float, float] | None = None
+
+    @staticmethod
+    def _read(f: Path) -> float | None:
+        try:
+            return float(f.read_text())
+        except (OSError, ValueError):
+            return None
+
+    def sample(self) -> float:
+        """Watts since the previous sample; NaN when unavailable or on the first call."""
+        if not self.available:
+            return float("nan")
+        now = time.monotonic()
+        energy = sum(v for f in self.files if (v := self._read(f)) is not None) * 1e-6
+        last, self._last = self._last, (now, energy)
+        if last is None or now <= last[0] or energy < last[1]:  # first sample or counter wrap
+            return float("nan")
+        return (energy - last[1]) / (now - last[0])
+
+
+class ByteRate:
+    """Mbps from a byte counter: Δbytes / Δt · 8e-6 between samples."""
+
+    def __init__(self, read: Callable[[], float]) -> None:
+        self.read = read
+        self._last = (time.monotonic(), read())
+
+    def sample(self) -> float:
+        now, value = time.monotonic(), self.read()
+        t0, v0 = self._last
+        self._last = (now, value)
+        return (value - v0) / (now - t0) * 8e-6 if now > t0 else float("nan")
+
+
+def nic_bytes(nic: str, direction: str = "sent") -> Callable[[], float]:
+    """A counter of a network interface's bytes (``sent`` or ``recv``), for ``ByteRate``."""
+    if nic not in psutil.net_io_counters(pernic=True):
+        raise ValueError(f"no network interface {nic!r} (have {sorted(psutil.net_io_counters(pernic=True))})")
+
+    def read() -> float:
+        c = psutil.net_io_counters(pernic=True)[nic]
+        return float(c.bytes_sent if direction == "sent" else c.bytes_recv)
+
+    return read
+
+
+class Pinger:
+    """Ping-pong over a Zenoh queryable once per ``period``: the round trip in ms, smoothed.
+    An unanswered ping counts as ``timeout`` (the link is at least that slow)."""
+
+    def __init__(self, session: Any, key: str, period: float = 1.0, timeout: float = 1.0,
+                 window: int = 5) -> None:
+        self.session, self.key, self.period, self.timeout = session, key, period, timeout
+        self.rtt = MovingAverage(window)
+        self.last_ms = float("nan")
+        self.lost = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pinger", daemon=True)
+
+    def start(self) -> Pinger:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=self.timeout + 1)
+
+    def ping(self) -> float:
+        t0 = time.monotonic()
+        try:
+            # the stamp travels in the selector's parameters (``key?stamp=…``), echoed in the Pong
+            for reply in self.session.get(f"{self.key}?stamp={time.time():.6f}", timeout=self.timeout):
+                if reply.ok is not None:
+                    return (time.monotonic() - t0) * 1e3
+        except Exception as exc:  # a closed session while stopping, or a bad key
+            if not self._stop.is_set():
+                log.warning("ping on %s failed: %s", self.key, exc)
+        return float("nan")
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            ms = self.ping()
+            if math.isfinite(ms):
+                self.last_ms = ms
+            else:
+                self.lost += 1
+                ms = self.timeout * 1e3
+            self.rtt.add(ms)

@@ -1,0 +1,60 @@
+"""A CPU quota for the robot process, as the offloading thesis limited its robot container.
+
+With root and a cgroup-v1 ``cpu`` hierarchy (``/sys/fs/cgroup/cpu``) or cgroup v2 (``cpu.max``),
+the process moves itself into its own group with ``quota`` cores of CFS time per 100 ms period;
+all its threads (onnxruntime's included) share that budget. Where neither is writable, the
+fallback is a thread limit: onnxruntime gets ``ceil(quota)`` threads, which caps parallelism but
+not the time share, and the result says which one was applied.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import math
+import os
+from pathlib import Path
+
+log = logging.getLogger("zoffload.runtime.quota")
+
+PERIOD_US = 100_000
+V1 = Path("/sys/fs/cgroup/cpu")
+V2 = Path("/sys/fs/cgroup")
+
+
+def apply_cpu_quota(cores: float, name: str | None = None) -> str:
+    """Limit this process to ``cores`` CPUs; returns "cgroup-v1", "cgroup-v2" or "threads"."""
+    name = name or f"zoffload-robot-{os.getpid()}"
+    quota_us = max(1000, int(cores * PERIOD_US))
+    pid = str(os.getpid())
+    # v1: period and quota files; v2: one cpu.max ("quota period"). Written in this order.
+    for version, root, probe, limits in (
+        ("v1", V1, "cpu.cfs_quota_us",
+         {"cpu.cfs_period_us": str(PERIOD_US), "cpu.cfs_quota_us": str(quota_us)}),
+        ("v2", V2, "cgroup.controllers", {"cpu.max": f"{quota_us} {PERIOD_US}"}),
+    ):
+        if not (root / probe).exists():
+            continue
+        group = root / name
+        try:
+            group.mkdir(exist_ok=True)
+            for file, value in limits.items():
+                (group / file).write_text(value)
+            (group / "cgroup.procs").write_text(pid)
+            atexit.register(_leave, root, group)
+            log.info("CPU quota %.2f cores via %s", cores, group)
+            return f"cgroup-{version}"
+        except OSError as exc:
+            log.warning("cgroup %s quota not applied (%s)", version, exc)
+    log.warning("no writable cgroup: limiting detector threads to %d instead of a CPU quota",
+                math.ceil(cores))
+    return "threads"
+
+
+def _leave(root: Path, group: Path) -> None:
+    """At exit: move this process back to the root group and remove its own (now empty) group."""
+    try:
+        (root / "cgroup.procs").write_text(str(os.getpid()))
+        group.rmdir()
+    except OSError as exc:  # threads still exiting keep it busy: the group stays, harmless
+        log.debug("cgroup %s not removed: %s", group, exc)
