@@ -23,8 +23,10 @@ import zenoh
 
 from benchmarks.common import header, kitti_dir
 from zoffload.protocol import wire
-from zoffload.robot.scans import RobotDaemon
+from zoffload.robot.scans import scan_streamer
+from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings, ZenohSettings
+from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.kitti import KittiBinSource
@@ -84,10 +86,9 @@ def daemons(
     settings = RobotSettings(voxel=0.0, rate_hz=rate, replay="loop", max_scans=int(rate * seconds),
                              ack_timeout=2.0, wait_edge=30, status_period=5.0, max_in_flight=max_in_flight,
                              zenoh=z(port, False))
-    robot = RobotDaemon(settings, source=MemorySource(frames, rate))
-    robot.start()
-    robot.run()
-    robot.shutdown()
+    stop = StopSignal()
+    robot = scan_streamer(settings, stop, source=MemorySource(frames, rate))
+    RobotServer(settings, [robot], stop).run()
     edge.send_signal(2)
     edge.wait()
     b = robot.ledger.balance()

@@ -6,6 +6,7 @@ Run: python -m benchmarks.bench_voxel
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -39,8 +40,8 @@ def main() -> None:
         # Timed in separate blocks with a pause: Open3D's OpenMP threads keep spinning for a while
         # after each call and would steal the core from whatever runs right after them.
         time.sleep(0.5)
-        ours = median_ms(lambda v=v: voxel_downsample(pts, v), repeat=50)
-        o3d_ms = median_ms(lambda v=v: open3d_grid(pts, v), repeat=50)
+        ours = median_ms(functools.partial(voxel_downsample, pts, v), repeat=50)
+        o3d_ms = median_ms(functools.partial(open3d_grid, pts, v), repeat=50)
         n_ours, n_o3d = len(voxel_downsample(pts, v)), len(open3d_grid(pts, v))
         ratio = o3d_ms / ours
         print(f"{v:>6.2f} | {ours:>11.2f} | {o3d_ms:>9.2f} | {ratio:>7.1f}x | {n_ours:,}/{n_o3d:,}")

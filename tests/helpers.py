@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from zoffload.edge.server import EdgeDaemon
+from zoffload.edge.server import EdgeServer
 from zoffload.lab import runner
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, ZenohSettings
@@ -41,18 +41,19 @@ def wait_token(session: Any, key: str, timeout: float = 20.0) -> None:
 
 
 @contextmanager
-def running_edge(settings: EdgeSettings) -> Iterator[EdgeDaemon]:
-    """An edge daemon in this process (its own Zenoh session), stopped on exit."""
-    daemon = EdgeDaemon(settings)
-    daemon.start()
-    thread = threading.Thread(target=daemon.run, daemon=True)
-    thread.start()
+def running_edge(settings: EdgeSettings) -> Iterator[EdgeServer]:
+    """An edge server in this process (its own Zenoh session), shut down on exit."""
+    server = EdgeServer(settings)
+    loop = threading.Thread(target=server.main_loop, daemon=True)
     try:
-        yield daemon
+        server.startup()
+        loop.start()
+        yield server
     finally:
-        daemon.stop.set()
-        thread.join(5)
-        daemon.shutdown()
+        server.stop.set()
+        if loop.is_alive():
+            loop.join(5)
+        server.shutdown()
 
 
 @contextmanager

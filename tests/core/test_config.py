@@ -7,7 +7,10 @@ import pytest
 import yaml
 
 from zoffload.runtime.config import (
+    DetectorSettings,
     EdgeSettings,
+    MapperSettings,
+    PerceptionSettings,
     RobotSettings,
     ZenohSettings,
     load_settings,
@@ -91,3 +94,83 @@ def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
     assert '"wait_before_drop":50000' in cc
     mine = ZenohSettings(cfg=[f"{DROP_WAIT_KEY}:0"])
     assert edge_zenoh(mine) == mine
+
+
+ROBOT = "ZOFFLOAD_ROBOT__"
+EDGE = "ZOFFLOAD_EDGE__"
+
+
+def test_nested_environment_variables_and_their_values() -> None:
+    env = {
+        f"{ROBOT}VOXEL": "0.03",  # a float from a string
+        f"{ROBOT}PERCEPTION__STRATEGY": "edge",
+        f"{ROBOT}PERCEPTION__CPU_QUOTA": "0.5",
+        f"{ROBOT}VOXEL_RANGE": "[0.02, 0.5]",  # a pair, in YAML
+        f"{ROBOT}ZENOH__CONNECT": "[tcp/10.0.0.2:7447, tcp/10.0.0.3:7447]",  # a list, unquoted YAML
+        f"{ROBOT}ZENOH__MULTICAST_SCOUTING": "false",
+        f"{ROBOT}ROBOT_ID": "123",  # stays a string: ids may be digits
+        f"{ROBOT}RATE_HZ": "",  # empty: as if unset
+        "ZOFFLOAD_EDGE__VOXEL": "7",  # another program's prefix: not ours to read
+        "PATH": "/usr/bin",
+    }
+    s = load_settings(RobotSettings, None, None, ROBOT, env)
+    assert s.voxel == 0.03 and s.voxel_range == (0.02, 0.5)
+    assert s.perception.strategy == "edge" and s.perception.cpu_quota == 0.5
+    assert s.perception.encoding == "bgr8"  # the rest of the section keeps its defaults
+    assert s.zenoh.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:7447"]
+    assert s.zenoh.multicast_scouting is False and s.zenoh.mode == "peer"
+    assert s.robot_id == "123" and s.rate_hz is None
+
+    e = load_settings(EdgeSettings, None, None, EDGE, {f"{EDGE}MAPPER__MAX_POINTS_PER_VOXEL": "10",
+                                                        f"{EDGE}MAPPER": "{queue: 4}",
+                                                        f"{EDGE}DETECTOR__ENABLED": "true"})
+    assert e.mapper.max_points_per_voxel == 10 and e.mapper.queue == 4 and e.detector.enabled is True
+
+
+def test_null_in_the_environment_unsets_what_the_file_set(tmp_path: Path) -> None:
+    f = tmp_path / "robot.yaml"
+    f.write_text("out_dir: /data/results\nperception: {fps: 10}\n")
+    env = {f"{ROBOT}OUT_DIR": "null", f"{ROBOT}PERCEPTION__FPS": "null"}
+    s = load_settings(RobotSettings, f, None, ROBOT, env)
+    assert s.out_dir is None and s.perception.fps is None
+
+
+@pytest.mark.parametrize(("name", "named"), [
+    (f"{ROBOT}VOXLE", "'voxle'"),
+    (f"{ROBOT}PERCEPTION__STRATEGI", "'perception.strategi'"),
+    (f"{ROBOT}NO_SUCH__KEY", "'no_such'"),
+    (f"{ROBOT}VOXEL__SIZE", "voxel is a value"),
+])
+def test_unknown_environment_variable_is_named(name: str, named: str) -> None:
+    with pytest.raises(ConfigError, match=name) as err:
+        load_settings(RobotSettings, None, None, ROBOT, {name: "1"})
+    assert named in str(err.value)
+
+
+def test_bad_environment_values_name_the_setting() -> None:
+    with pytest.raises(ConfigError, match=f"{ROBOT}ZENOH__LISTEN: .* not valid YAML"):
+        load_settings(RobotSettings, None, None, ROBOT, {f"{ROBOT}ZENOH__LISTEN": "[tcp/unclosed"})
+    with pytest.raises(ConfigError, match="voxel"):
+        load_settings(RobotSettings, None, None, ROBOT, {f"{ROBOT}VOXEL": "fine"})
+    with pytest.raises(ConfigError, match="perception.strategy"):
+        load_settings(RobotSettings, None, None, ROBOT, {f"{ROBOT}PERCEPTION__STRATEGY": "sideways"})
+
+
+def test_only_load_settings_with_a_prefix_reads_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(f"{ROBOT}VOXEL", "0.2")
+    monkeypatch.setenv(f"{EDGE}MAP_DIR", "/elsewhere")
+    assert RobotSettings().voxel == 0.05  # building a model in Python: the shell has no say
+    assert RobotSettings(scans="sim", voxel=0.1).voxel == 0.1
+    assert EdgeSettings(map_dir="maps").map_dir == "maps"
+    assert RobotSettings().model_copy(update={"max_scans": 3}).voxel == 0.05
+    assert load_settings(RobotSettings).voxel == 0.05  # no prefix: no environment
+    assert load_settings(RobotSettings, env_prefix=ROBOT).voxel == 0.2  # os.environ by default
+    assert load_settings(RobotSettings, env_prefix=ROBOT, environ={}).voxel == 0.05
+
+
+def test_every_setting_is_described_on_one_line() -> None:
+    for model in (ZenohSettings, MapperSettings, DetectorSettings, PerceptionSettings, RobotSettings,
+                  EdgeSettings):
+        for name, field in model.model_fields.items():
+            assert field.description, f"{model.__name__}.{name} has no description"
+            assert "\n" not in field.description and len(field.description) <= 100, name

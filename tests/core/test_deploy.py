@@ -54,7 +54,8 @@ def test_commands_parse_with_the_cli_and_configs_load() -> None:
         assert s.zenoh.mode == "client" and s.zenoh.shared_memory is False
         # Each daemon connects to the router service on the port the router listens on
         router_cfg = _mounted(services["router"], services["router"]["command"][1]).read_text()
-        listen_ports = {urlparse("x://" + e.split("/", 1)[1]).port for e in _json5_listen(router_cfg)}
+        urls = [urlparse("x://" + e.split("/", 1)[1]) for e in _json5_listen(router_cfg)]
+        listen_ports = {u.port for u in urls if u.port}
         for ep in s.zenoh.connect:
             proto, addr = ep.split("/", 1)
             host, port = addr.rsplit(":", 1)

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import zenoh
+
 BIN = Path(sys.executable).parent
 
 
@@ -57,3 +59,22 @@ class Proc:
 
     def text(self) -> str:
         return self.log.read_text()  # the child writes to the file itself
+
+
+def edge_args(port: int, *extra: str, listen: bool = True) -> list[str]:
+    """zoffload-edge listening on ``port`` (or connecting to it, ``listen=False``)."""
+    return script("zoffload-edge") + session_args(**{"listen" if listen else "connect": port}) + list(extra)
+
+
+def start_edge(session: zenoh.Session, args: list[str], log: Path, edge_id: str = "edge1",
+               timeout: float = 60) -> Proc:
+    """Start an edge process and return it once its liveliness token is seen through ``session``."""
+    from tests.helpers import KEYS, wait_token
+
+    edge = Proc(args, log)
+    try:
+        wait_token(session, KEYS.edge_alive(edge_id), timeout)
+    except AssertionError:
+        edge.sigint(5)
+        raise AssertionError(f"the edge did not come up:\n{edge.text()}") from None
+    return edge

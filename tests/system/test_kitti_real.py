@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers import KEYS, client, wait_token
-from tests.system.procs import Proc, script, session_args
+from tests.helpers import client
+from tests.system.procs import Proc, edge_args, script, session_args, start_edge
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.mapper import RobotMapper
 from zoffload.sources.kitti import KittiBinSource
@@ -23,18 +23,16 @@ pytest.importorskip("kiss_icp")
 
 
 def test_kitti360_scans_through_the_daemons(kitti_dir: Path, free_port: int, tmp_path: Path) -> None:
-    edge = Proc(script("zoffload-edge") + session_args(listen=free_port)
-                + ["--map-dir", str(tmp_path / "edge")], tmp_path / "edge.log")
-    try:
-        with client(free_port) as s:
-            wait_token(s, KEYS.edge_alive("edge1"))
+    with client(free_port) as s:
+        edge = start_edge(s, edge_args(free_port, "--map-dir", str(tmp_path / "edge")), tmp_path / "edge.log")
+        try:
             # 5 Hz: leaves the 2-core machine room for the reference-free run to be clean
             robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
                          + ["--scans", str(kitti_dir), "--rate", "5", "--ack-timeout", "3",
                             "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
             assert robot.wait(240) == 0, robot.text()
-    finally:
-        assert edge.sigint() == 0, edge.text()
+        finally:
+            assert edge.sigint() == 0, edge.text()
     metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
     assert metrics["balanced"] and metrics["balance"]["produced"] == 50
     assert metrics["balance"]["acked"] >= 48, metrics

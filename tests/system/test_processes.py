@@ -6,15 +6,14 @@ from __future__ import annotations
 import json
 import socket
 import subprocess
-import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
-from tests.helpers import KEYS, client, wait_token
-from tests.system.procs import Proc, script, session_args
+from tests.helpers import KEYS, client, wait_for, wait_token
+from tests.system.procs import Proc, edge_args, script, session_args, start_edge
+from zoffload.lab.runner import StatusWatcher
 from zoffload.protocol import wire
 from zoffload.runtime.errors import ExitCode
 
@@ -23,11 +22,9 @@ pytest.importorskip("kiss_icp")
 
 
 def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Path) -> None:
-    edge = Proc(script("zoffload-edge") + session_args(listen=free_port)
-                + ["--map-dir", str(tmp_path / "edge")], tmp_path / "edge.log")
-    try:
-        with client(free_port) as s:
-            wait_token(s, KEYS.edge_alive("edge1"))
+    with client(free_port) as s:
+        edge = start_edge(s, edge_args(free_port, "--map-dir", str(tmp_path / "edge")), tmp_path / "edge.log")
+        try:
             robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
                          + ["--max-scans", "40", "--out", str(tmp_path / "robot")],
                          tmp_path / "robot.log")
@@ -35,9 +32,8 @@ def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Pa
             assert robot.wait(120) == 0, robot.text()
             reply = list(s.get(KEYS.map("robot1"), timeout=10))[0]
             m = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
-            assert isinstance(m, wire.MapReply)
-    finally:
-        code = edge.sigint()
+        finally:
+            code = edge.sigint()
     assert code == 0, edge.text()
     metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
     assert metrics["balanced"] and metrics["balance"]["produced"] == 40
@@ -50,22 +46,12 @@ def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Pa
 
 
 def test_robot_survives_the_edge_dying_mid_run(free_port: int, tmp_path: Path) -> None:
-    edge = Proc(script("zoffload-edge") + session_args(listen=free_port), tmp_path / "edge.log")
-    acked = [0.0]
-
-    def on_status(sample: Any) -> None:
-        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        acked[0] = msg.values.get("acked", 0.0)  # type: ignore[attr-defined]
-
     with client(free_port) as s:
-        wait_token(s, KEYS.edge_alive("edge1"))
-        s.declare_subscriber(KEYS.robot_status("robot1"), on_status)
+        edge = start_edge(s, edge_args(free_port), tmp_path / "edge.log")
+        status = StatusWatcher(s, KEYS, "robot1")
         robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
                      + ["--max-scans", "80", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
-        deadline = time.monotonic() + 60
-        while acked[0] < 15 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert acked[0] >= 15, robot.text()
+        wait_for(lambda: status.values.get("acked", 0) >= 15, 60, "15 scans acked")
         edge.p.kill()  # no goodbye: the liveliness token vanishes with the connection
         edge.wait()
     assert robot.wait(120) == 0, robot.text()
@@ -113,9 +99,8 @@ def test_router_topology_as_in_docker_compose(free_port: int, tmp_path: Path) ->
                    "--no-shm"]
     edge = None
     try:
-        with client(free_port) as s:  # waits for the router's port through the session open
-            edge = Proc(script("zoffload-edge") + client_args, tmp_path / "edge.log")
-            wait_token(s, KEYS.edge_alive("edge1"))
+        with client(free_port) as s:  # connects once the router's port is open
+            edge = start_edge(s, script("zoffload-edge") + client_args, tmp_path / "edge.log")
             robot = Proc(script("zoffload-robot") + client_args
                          + ["--max-scans", "20", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
             assert robot.wait(120) == 0, robot.text()

@@ -15,8 +15,9 @@ import pytest
 import yaml
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
-from tests.system.procs import Proc, script, session_args
+from tests.system.procs import Proc, edge_args, script, start_edge
 from zoffload.lab import runner
+from zoffload.lab.runner import StatusWatcher
 from zoffload.protocol import wire
 from zoffload.runtime.config import DetectorSettings, EdgeSettings, MapperSettings
 
@@ -38,10 +39,6 @@ def _robot_yaml(tmp_path: Path, port: int, coco: Path, **perception: Any) -> Pat
     return path
 
 
-def _edge_args(port: int) -> list[str]:
-    return script("zoffload-edge") + session_args(listen=port) + ["--no-mapping"]
-
-
 def _frames(run: Path) -> list[dict[str, str]]:
     with open(run / "frames.csv") as f:
         return list(csv.DictReader(f))
@@ -49,27 +46,21 @@ def _frames(run: Path) -> list[dict[str, str]]:
 
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
                                                     models_dir: Path) -> None:
-    edge = Proc(_edge_args(free_port), tmp_path / "edge.log")
-    done = [0.0]
-
-    def on_status(sample: Any) -> None:
-        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        done[0] = msg.values.get("edge_done", done[0])  # type: ignore[attr-defined]
-
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=450, reply_timeout=0.5,
                       probe_period=0.3, resume_after=2)
     with client(free_port) as s:
-        wait_token(s, KEYS.edge_alive("edge1"), 60)
-        s.declare_subscriber(KEYS.robot_status("robot1"), on_status)
+        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+        status = StatusWatcher(s, KEYS, "robot1")
         robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
-        wait_for(lambda: done[0] >= 20 or robot.p.poll() is not None, 60, "edge results before the kill")
+        wait_for(lambda: status.values.get("edge_done", 0) >= 20 or robot.p.poll() is not None, 60,
+                 "edge results before the kill")
         assert robot.p.poll() is None, robot.text()
     t_kill = time.time()
     edge.p.kill()  # no goodbye
     edge.wait()
     time.sleep(2.0)
     t_restart = time.time()
-    edge2 = Proc(_edge_args(free_port), tmp_path / "edge2.log")
+    edge2 = Proc(edge_args(free_port, "--no-mapping"), tmp_path / "edge2.log")
     try:
         assert robot.wait(120) == 0, robot.text()
     finally:
@@ -94,10 +85,9 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
 
 def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,
                                               models_dir: Path) -> None:
-    edge = Proc(_edge_args(free_port), tmp_path / "edge.log")
-    try:
-        with client(free_port) as s:
-            wait_token(s, KEYS.edge_alive("edge1"), 60)
+    with client(free_port) as s:
+        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+        try:
             cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="dynamic", max_frames=150,
                               encoding="jpeg")
             robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
@@ -105,7 +95,7 @@ def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, co
                      or runner.wait_token(s, KEYS.robot_alive("robot1"), 0.5), 60, "the robot's token")
             assert robot.p.poll() is None, robot.text()
             # Results the robot never asked for: one for an unknown frame, one that is not a message
-            stray = wire.DetectionsMsg(robot="robot1", seq=10**9, send_stamp=0.0, edge="x", model="m",
+            stray = wire.Detections(robot="robot1", seq=10**9, send_stamp=0.0, edge="x", model="m",
                                        status="ok", infer_time=0.0, queue_time=0.0, batch=1,
                                        boxes=np.zeros((0, 4), np.float32), scores=np.zeros(0, np.float32),
                                        classes=np.zeros(0, np.int32))
@@ -113,8 +103,8 @@ def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, co
             s.put(KEYS.detections("robot1"), wire.encode(stray))
             s.put(KEYS.detections("robot1"), b"garbage")
             assert robot.wait(120) == 0, robot.text()
-    finally:
-        edge.sigint()
+        finally:
+            edge.sigint()
     run = tmp_path / "robot"
     m = json.loads((run / "vision_metrics.json").read_text())
     b = m["balance"]
@@ -135,11 +125,11 @@ def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, co
 def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int, models_dir: Path) -> None:
     settings = EdgeSettings(mapper=MapperSettings(enabled=False), detector=DetectorSettings(enabled=True),
                             zenoh=listen_on(free_port))
-    replies: list[wire.DetectionsMsg] = []
+    replies: list[wire.Detections] = []
 
     def on_det(sample: Any) -> None:
-        msg = wire.decode(sample.payload.to_bytes(), expect=wire.DetectionsMsg)
-        assert isinstance(msg, wire.DetectionsMsg)
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Detections)
+        assert isinstance(msg, wire.Detections)
         replies.append(msg)
 
     with running_edge(settings) as edge, client(free_port) as s:
@@ -156,7 +146,7 @@ def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int
                           width=64, height=48, data=np.zeros(64 * 48 * 3, np.uint8))
         for k, f in enumerate((wrong_size, bad_jpeg, good)):  # one at a time: a burst would overflow
             pub.put(wire.encode(f))                            # the queue and be answered "dropped"
-            wait_for(lambda k=k: len(replies) == k + 1, 20, f"answer {k + 1}")
+            wait_for(lambda k=k: len(replies) == k + 1, 20, f"answer {k + 1}")  # type: ignore[misc]
         assert edge.detector is not None
         assert edge.detector.counters["malformed"] == 1
         assert edge.detector.counters["errors"] == 2
@@ -169,12 +159,12 @@ def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int
 def test_one_edge_detector_serves_several_robots(free_port: int, models_dir: Path) -> None:
     settings = EdgeSettings(mapper=MapperSettings(enabled=False), detector=DetectorSettings(enabled=True),
                             zenoh=listen_on(free_port))
-    got: dict[str, list[wire.DetectionsMsg]] = {"r1": [], "r2": []}
+    got: dict[str, list[wire.Detections]] = {"r1": [], "r2": []}
 
     def collect(robot: str) -> Any:
         def on(sample: Any) -> None:
-            msg = wire.decode(sample.payload.to_bytes(), expect=wire.DetectionsMsg)
-            assert isinstance(msg, wire.DetectionsMsg) and msg.robot == robot
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Detections)
+            assert isinstance(msg, wire.Detections) and msg.robot == robot
             got[robot].append(msg)
         return on
 

@@ -4,6 +4,8 @@
 Python API. Every program takes the Zenoh session flags of the zenoh examples
 (``-m -e -l -c --no-multicast-scouting --cfg``) plus ``--no-shm``; program settings come from
 ``--settings FILE`` (YAML), then ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables, then flags.
+The daemons' flags are built from the settings models (``zoffload.cli.flags``): every setting is a
+flag, ``--key-name`` or ``--section.key-name``, with the help and default its field declares.
 """
 
 from __future__ import annotations
@@ -12,12 +14,15 @@ import argparse
 import json
 import logging
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from pydantic import BaseModel
+
 from zoffload import __version__
+from zoffload.cli.flags import Spelling, add_settings_flags, flag_values, summary
 from zoffload.detect.models import ModelError
-from zoffload.runtime.config import EdgeSettings, RobotSettings, load_settings
+from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings, load_settings
 from zoffload.runtime.errors import ConfigError, ExitCode, ZenohSessionError
 from zoffload.runtime.lifecycle import StopSignal, setup_logging
 from zoffload.sources.base import ScanSourceError
@@ -25,92 +30,92 @@ from zoffload.sources.base import ScanSourceError
 log = logging.getLogger("zoffload")
 
 
+ROBOT_ENV = "ZOFFLOAD_ROBOT__"
+EDGE_ENV = "ZOFFLOAD_EDGE__"
+
+# Flags are built from the settings models (zoffload.cli.flags): --key-name, --section.key-name.
+# These tables only keep the spellings the flags have always had. The session flags are the zenoh
+# examples' (-m -e -l -c --cfg); --no-multicast-scouting and --no-shm are derived from the "on" forms.
+SESSION_SPELLINGS: dict[str, Spelling] = {
+    "zenoh.mode": Spelling(("-m", "--mode")),
+    "zenoh.connect": Spelling(("-e", "--connect"), "ENDPOINT"),
+    "zenoh.listen": Spelling(("-l", "--listen"), "ENDPOINT"),
+    "zenoh.multicast_scouting": Spelling(("--multicast-scouting",)),
+    "zenoh.shared_memory": Spelling(("--shm",)),
+    "zenoh.config_file": Spelling(("-c", "--config"), "FILE"),
+    "zenoh.cfg": Spelling(("--cfg",), "KEY:VALUE"),
+}
+ROBOT_SPELLINGS: dict[str, Spelling] = {
+    **SESSION_SPELLINGS,
+    "rate_hz": Spelling(("--rate",), "HZ"),
+    "voxel_range": Spelling(("--voxel-range",), ("LOW", "HIGH")),
+    "out_dir": Spelling(("--out",), "DIR"),
+}
+EDGE_SPELLINGS: dict[str, Spelling] = {
+    **SESSION_SPELLINGS,
+    "mapper.enabled": Spelling(("--mapping",)),
+    "detector.enabled": Spelling(("--detector",)),
+}
+
+
 def add_session_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("zenoh session")
-    g.add_argument("-m", "--mode", choices=["peer", "client", "router"], help="session mode")
-    g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help="endpoint to connect to")
-    g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on")
-    g.add_argument("-c", "--config", dest="zenoh_config", metavar="FILE", help="zenoh config file")
-    g.add_argument("--no-multicast-scouting", action="store_true", help="disable multicast scouting")
-    g.add_argument("--no-shm", action="store_true",
-                   help="disable shared memory (needed for traffic to cross a shaped link)")
-    g.add_argument("--cfg", action="append", metavar="KEY:VALUE",
-                   help="any zenoh config key, VALUE in JSON5 (repeatable)")
+    add_settings_flags(p, ZenohSettings, SESSION_SPELLINGS, prefix="zenoh", title="zenoh session")
 
 
 def session_flags(a: argparse.Namespace) -> dict[str, Any]:
-    z: dict[str, Any] = {"mode": a.mode, "connect": a.connect, "listen": a.listen,
-                         "config_file": a.zenoh_config, "cfg": a.cfg}
-    if a.no_multicast_scouting:
-        z["multicast_scouting"] = False
-    if a.no_shm:
-        z["shared_memory"] = False
-    return {k: v for k, v in z.items() if v is not None}
+    """The Zenoh session settings given as flags (for ``ZenohSettings``)."""
+    return flag_values(a, ZenohSettings, "zenoh")
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--settings", metavar="FILE", help="YAML settings file")
-    p.add_argument("--namespace", help="key namespace (default zoffload)")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env ZOFFLOAD_LOG)")
-    add_session_arguments(p)
+class _HelpFormatter(argparse.HelpFormatter):
+    """A wider flag column: most generated flags then keep their help on the same line."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=34)
+
+
+def _daemon_parser(p: argparse.ArgumentParser, model: type[BaseModel], spellings: dict[str, Spelling],
+                   env_prefix: str, example: str) -> None:
+    p.description = p.description or summary(model)
+    p.usage = "%(prog)s [--settings FILE] [flags]"  # the generated one would list every flag
+    p.formatter_class = _HelpFormatter
+    p.epilog = (
+        "Each setting is, in rising precedence: its default (shown above), its key in --settings FILE "
+        f"(YAML, sections nested), the environment variable {env_prefix}KEY or {env_prefix}SECTION__KEY "
+        f"(e.g. {example}; lists in YAML: {env_prefix}ZENOH__CONNECT=[tcp/10.0.0.2:7447]; null unsets), "
+        "then its flag. Unknown keys and variables are errors."
+    )
+    p.add_argument("--settings", metavar="FILE", help="YAML settings file: the flags' keys, sections nested")
+    p.add_argument("--log-level", default=None, metavar="LEVEL",
+                   help="DEBUG, INFO, WARNING (env ZOFFLOAD_LOG)")
+    program = model.__name__.removesuffix("Settings").lower()
+    add_settings_flags(p, model, spellings, title=f"{program} settings")
 
 
 def robot_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    p = p or argparse.ArgumentParser(prog="zoffload-robot", description="The robot daemon.")
-    _common(p)
-    p.add_argument("--robot-id", help="this robot's id (default robot1)")
-    p.add_argument("--scans", help="'sim' or a folder of .bin/.pcd/.ply scans")
-    p.add_argument("--replay", choices=["once", "loop", "pingpong"], help="replay mode")
-    p.add_argument("--rate", type=float, dest="rate_hz", help="sensor rate in Hz (default: source's)")
-    p.add_argument("--max-scans", type=int, help="stop after this many scans")
-    p.add_argument("--voxel", type=float,
-                   help="voxel size in m (the fixed policy's size, the rate policy's start); 0 = raw")
-    p.add_argument("--scale-policy", help="rate (default: sized for the link), fixed, dqn or dqn:PATH")
-    p.add_argument("--voxel-range", type=float, nargs=2, metavar=("LOW", "HIGH"),
-                   help="the scale policy's voxel range in m (default 0.01 0.07; 0.02 0.5 for an HDL-64)")
-    p.add_argument("--scan-coding", choices=["f32", "q16z"], help="scan payload (default q16z)")
-    p.add_argument("--ack-timeout", type=float, help="seconds before an unanswered scan is lost")
-    p.add_argument("--max-in-flight", type=int,
-                   help="unanswered scans before the next is held back (default 3; 0 = no limit)")
-    p.add_argument("--wait-edge", type=float, help="seconds to wait for an edge at start")
-    p.add_argument("--out", dest="out_dir", help="results folder")
+    p = p or argparse.ArgumentParser(prog="zoffload-robot")
+    _daemon_parser(p, RobotSettings, ROBOT_SPELLINGS, ROBOT_ENV, f"{ROBOT_ENV}PERCEPTION__STRATEGY=edge")
     return p
 
 
 def edge_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    p = p or argparse.ArgumentParser(prog="zoffload-edge", description="The edge daemon.")
-    _common(p)
-    p.add_argument("--edge-id", help="this edge's id (default edge1)")
-    p.add_argument("--map-dir", help="export maps and trajectories here on shutdown")
-    p.add_argument("--map-format", choices=["ply", "pcd"])
-    p.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
-                   help="receive and ack scans without mapping them (link checks)")
+    p = p or argparse.ArgumentParser(prog="zoffload-edge")
+    _daemon_parser(p, EdgeSettings, EDGE_SPELLINGS, EDGE_ENV, f"{EDGE_ENV}MAPPER__QUEUE=4")
     return p
 
 
-def _flags(a: argparse.Namespace, names: Sequence[str]) -> dict[str, Any]:
-    out = {n: getattr(a, n) for n in names if getattr(a, n, None) is not None}
-    z = session_flags(a)
-    if z:
-        out["zenoh"] = z
-    return out
+def robot_settings(a: argparse.Namespace, environ: Mapping[str, str] | None = None) -> RobotSettings:
+    """Defaults < ``--settings`` file < ``ZOFFLOAD_ROBOT__*`` (``environ``, else os.environ) < flags."""
+    return load_settings(RobotSettings, a.settings, flag_values(a, RobotSettings), ROBOT_ENV, environ)
 
 
-def robot_settings(a: argparse.Namespace) -> RobotSettings:
-    names = ["namespace", "robot_id", "scans", "replay", "rate_hz", "max_scans", "voxel", "scale_policy",
-             "voxel_range", "scan_coding", "ack_timeout", "max_in_flight", "wait_edge", "out_dir"]
-    return load_settings(RobotSettings, a.settings, _flags(a, names), "ZOFFLOAD_ROBOT__")
-
-
-def edge_settings(a: argparse.Namespace) -> EdgeSettings:
-    flags = _flags(a, ["namespace", "edge_id", "map_dir", "map_format"])
-    if a.mapping is False:
-        flags["mapper"] = {"enabled": False}
-    return load_settings(EdgeSettings, a.settings, flags, "ZOFFLOAD_EDGE__")
+def edge_settings(a: argparse.Namespace, environ: Mapping[str, str] | None = None) -> EdgeSettings:
+    """Defaults < ``--settings`` file < ``ZOFFLOAD_EDGE__*`` (``environ``, else os.environ) < flags."""
+    return load_settings(EdgeSettings, a.settings, flag_values(a, EdgeSettings), EDGE_ENV, environ)
 
 
 def _run_robot(a: argparse.Namespace) -> int:
-    from zoffload.robot.scans import run
+    from zoffload.robot.server import run
 
     run(robot_settings(a), StopSignal().install())
     return ExitCode.OK
@@ -238,8 +243,8 @@ def _run_report(a: argparse.Namespace) -> int:
 def _run_train(a: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from zoffload.lab.train_policy import run_training
     from zoffload.policy.dqn import DQNConfig
-    from zoffload.policy.training import run_training
 
     lo, hi = a.voxel_range
     if not 0 < lo < hi:

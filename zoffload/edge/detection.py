@@ -1,7 +1,7 @@
 """The edge's object-detector service: every robot's camera frames, one heavier ONNX model.
 
 Inputs:  ``<ns>/data/*/frame`` (wire.Frame).
-Outputs: ``<ns>/data/<robot>/detections`` (wire.DetectionsMsg, one per frame: also for frames it
+Outputs: ``<ns>/data/<robot>/detections`` (wire.Detections, one per frame: also for frames it
          could not decode or had to drop, so no robot waits for an answer that will not come).
 
 The Zenoh callback only decodes and queues; one inference thread serves all robots. When frames
@@ -18,11 +18,11 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+import zenoh
 
-from zoffload.detect.detector import Detector
+from zoffload.detect.detector import Detections, Detector
 from zoffload.protocol import wire
 from zoffload.protocol.intake import decode_from_robot
 from zoffload.protocol.keys import Keys
@@ -60,10 +60,11 @@ def decode_image(frame: wire.Frame) -> np.ndarray:
 
 
 class DetectorService:
-    def __init__(self, detector: Detector, session: Any, keys: Keys, edge_id: str, queue: int = 2,
+    name = "detector"
+
+    def __init__(self, detector: Detector, keys: Keys, edge_id: str, queue: int = 2,
                  batch: int = 4) -> None:
         self.detector = detector
-        self.session = session
         self.keys = keys
         self.edge_id = edge_id
         self.queue_len = queue
@@ -71,35 +72,42 @@ class DetectorService:
         self.counters: Counter[str] = Counter()
         self.infer_times: deque[float] = deque(maxlen=100)
         self._pending: dict[str, deque[_Pending]] = {}
-        self._pubs: dict[str, Any] = {}
+        self._pubs: dict[str, zenoh.Publisher] = {}
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="detector", daemon=True)
+        self._session: zenoh.Session | None = None
+        self._sub: zenoh.Subscriber[None] | None = None
 
-    def start(self) -> None:
+    def start(self, session: zenoh.Session) -> None:
         self.detector.detect(np.zeros((64, 64, 3), np.uint8))  # first-run allocation, not on a frame
-        self._sub = self.session.declare_subscriber(self.keys.all_frames(), self._on_frame)
+        self._session = session
+        self._sub = session.declare_subscriber(self.keys.all_frames(), self._on_frame)
         self._thread.start()
         log.info("detector %s serving %s", self.detector.name, self.keys.all_frames())
 
     def stop(self) -> None:
+        # No new frames: one queued after the thread stops would never be answered
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
-        self._thread.join(timeout=5)
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
 
-    def _pub(self, robot: str) -> Any:
+    def _pub(self, robot: str) -> zenoh.Publisher:
         pub = self._pubs.get(robot)
         if pub is None:
-            import zenoh
-
-            pub = self.session.declare_publisher(self.keys.detections(robot), express=True,
-                                                 congestion_control=zenoh.CongestionControl.DROP)
+            assert self._session is not None, "frames arrive only after start()"
+            pub = self._session.declare_publisher(self.keys.detections(robot), express=True,
+                                                  congestion_control=zenoh.CongestionControl.DROP)
             self._pubs[robot] = pub
         return pub
 
     # Zenoh callback: decode, check, queue
-    def _on_frame(self, sample: Any) -> None:
+    def _on_frame(self, sample: zenoh.Sample) -> None:
         arrival = time.monotonic()
         frame = decode_from_robot(sample, wire.Frame, self.keys, self.counters, log, "frame")
         if frame is None:
@@ -150,8 +158,8 @@ class DetectorService:
                     batch=batch, det=det)
 
     def _reply(self, p: _Pending, status: str, detail: str = "", queue_time: float = float("nan"),
-               infer_time: float = float("nan"), batch: int = 0, det: Any = None) -> None:
-        msg = wire.DetectionsMsg(
+               infer_time: float = float("nan"), batch: int = 0, det: Detections | None = None) -> None:
+        msg = wire.Detections(
             robot=p.frame.robot, seq=p.frame.seq, send_stamp=p.frame.send_stamp, edge=self.edge_id,
             model=self.detector.name, status=status, infer_time=infer_time, queue_time=queue_time,
             batch=batch, detail=detail,

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings, write_effective
@@ -45,7 +47,7 @@ class Spawned:
         return "".join(self.log_path.read_text().splitlines(keepends=True)[-n:])
 
 
-def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60) -> Any:
+def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60) -> zenoh.Session | None:
     """Open a session once ``owner`` listens (its port opens a moment after it starts)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -58,7 +60,7 @@ def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60
     return None
 
 
-def wait_token(session: Any, key: str, timeout: float) -> bool:
+def wait_token(session: zenoh.Session, key: str, timeout: float) -> bool:
     seen = threading.Event()
     sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
     try:
@@ -70,16 +72,15 @@ def wait_token(session: Any, key: str, timeout: float) -> bool:
 class StatusWatcher:
     """Keeps the latest robot status values, for progress lines."""
 
-    def __init__(self, session: Any, keys: Keys, robot: str) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, robot: str) -> None:
         self.values: dict[str, float] = {}
         self._sub = session.declare_subscriber(keys.robot_status(robot), self._on)
 
-    def _on(self, sample: Any) -> None:
+    def _on(self, sample: zenoh.Sample) -> None:
         try:
             msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
         except wire.WireError:
             return
-        assert isinstance(msg, wire.Status)
         self.values.update(msg.values)
 
     def close(self) -> None:
@@ -138,11 +139,10 @@ def link_clock_start(log: Path) -> float | None:
     return None
 
 
-def fetch_map(session: Any, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
+def fetch_map(session: zenoh.Session, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
     for reply in session.get(keys.map(robot), timeout=timeout):
         if reply.ok is not None:
             msg = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
-            assert isinstance(msg, wire.MapReply)
             return msg
     return None
 

@@ -4,8 +4,9 @@ measured as the scale-optimisation paper's Table I.
 Processes: ``zoffload-edge`` (peer, listening), ``zoffload link`` (the emulator, in front of the
 edge), ``zoffload-robot`` (client mode, so every byte goes through the emulator: a peer could
 learn the edge's own address and connect around it). Shared memory is off everywhere, the robot's
-TCP send buffer is kept small so a slow link reaches Zenoh's DROP congestion control instead of
-hiding in the kernel. The harness's own session talks to the edge directly (measurement only).
+TCP send buffer is kept small so a slow link reaches Zenoh's congestion control (BLOCK_FIRST for
+scans) instead of hiding in the kernel. The harness's own session talks to the edge directly
+(measurement only).
 
 Every run writes, even when cut short: ``results.json`` (the Table I row), ``scans.csv`` (per-scan
 decisions and measurements, with the link rate at that moment), ``link.csv`` (what the emulator

@@ -160,27 +160,6 @@ def greedy_actions(net: Any, states: np.ndarray) -> np.ndarray:
         return net(torch.from_numpy(states.astype(np.float32))).argmax(1).numpy()
 
 
-def save_curves(path: Path, result: TrainResult) -> Path:
-    from zoffload.lab.eval.plots import _plt
-
-    plt = _plt()
-    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=False)
-    w = max(1, len(result.rewards) // 300)
-    smooth = np.convolve(result.rewards, np.ones(w) / w, mode="valid")
-    axes[0].plot(smooth)
-    axes[0].set_ylabel(f"reward (mean of {w})")
-    axes[1].plot(result.losses)
-    axes[1].set_ylabel("loss (every 100 eps)")
-    axes[1].set_yscale("log")
-    axes[2].plot(result.epsilons)
-    axes[2].set_ylabel("epsilon")
-    axes[2].set_xlabel("episode")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
-
-
 def write_metrics(path: Path, cfg: DQNConfig, result: TrainResult, extra: dict[str, Any]) -> Path:
     last = result.rewards[-max(1, len(result.rewards) // 10):]
     data = {"config": asdict(cfg), "seconds": result.seconds,

@@ -5,10 +5,10 @@ Layout (``<ns>`` defaults to ``zoffload``; ids are single chunks, no ``/``, ``*`
 ====================================  ==========  =====================================================
 key                                   primitive   payload
 ====================================  ==========  =====================================================
-``<ns>/data/<robot>/scan``            pub/sub     ``wire.Scan``  robot → edge, congestion control DROP
+``<ns>/data/<robot>/scan``            pub/sub     ``wire.Scan``  robot → edge, congestion control BLOCK_FIRST
 ``<ns>/data/<robot>/scan_ack``        pub/sub     ``wire.ScanAck`` edge → robot, one per scan
 ``<ns>/data/<robot>/frame``           pub/sub     ``wire.Frame`` robot → edge detector
-``<ns>/data/<robot>/detections``      pub/sub     ``wire.DetectionsMsg`` edge → robot, one per frame
+``<ns>/data/<robot>/detections``      pub/sub     ``wire.Detections`` edge → robot, one per frame
 ``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
 ``<ns>/ctrl/<robot>/ping``            queryable   ``wire.Pong`` answered by the edge (liveness RTT)
 ``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz

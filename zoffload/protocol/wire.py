@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, cast
+from typing import Any, ClassVar, TypeVar, cast, overload
 
 import msgpack
 import numpy as np
@@ -127,7 +127,7 @@ class Frame(Message):
 
 
 @dataclass(frozen=True)
-class DetectionsMsg(Message):
+class Detections(Message):
     """The edge detector's answer to one frame; boxes in the frame's pixels (x1, y1, x2, y2)."""
 
     TYPE: ClassVar[str] = "detections"
@@ -179,7 +179,7 @@ class Status(Message):
 
 
 MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Scan, ScanAck, Frame, DetectionsMsg, MapReply, Pong, Status)
+    m.TYPE: m for m in (Scan, ScanAck, Frame, Detections, MapReply, Pong, Status)
 }
 
 _SCALARS: dict[Any, tuple[type, ...]] = {
@@ -237,8 +237,20 @@ def encode(msg: Message) -> bytes:
     return msgpack.packb(out, use_bin_type=True)
 
 
+M = TypeVar("M", bound=Message)
+
+
+@overload
+def decode(data: bytes | bytearray | memoryview, expect: type[M]) -> M: ...
+
+
+@overload
+def decode(data: bytes | bytearray | memoryview, expect: None = None) -> Message: ...
+
+
 def decode(data: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> Message:
-    """Parse bytes into a message, checking every field; raise ``WireError`` on anything off."""
+    """Parse bytes into a message, checking every field; raise ``WireError`` on anything off.
+    With ``expect``, anything but that message type is a ``WireError`` and the result is typed."""
     try:
         obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises several unrelated exception types

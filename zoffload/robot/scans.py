@@ -1,11 +1,12 @@
-"""zoffload-robot: replays a scan source at sensor rate, downsamples each scan with the scale
-policy's voxel size, streams it to the edge, books every ack.
+"""The robot's scan pipeline: replays a scan source at sensor rate, downsamples each scan with the
+scale policy's voxel size, streams it to the edge, books every ack.
 
-Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck),
-         liveliness ``<ns>/alive/edge/*``.
-Outputs: ``<ns>/data/<robot>/scan`` (wire.Scan, congestion control DROP: a slow link drops stale
-         scans instead of stalling the sensor loop), ``<ns>/status/<robot>`` (wire.Status, 1 Hz),
-         liveliness ``<ns>/alive/robot/<robot>``; results in ``out_dir`` (config, metrics, per-scan CSV).
+Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck), the
+         edges present (the robot server's ``EdgePresence``).
+Outputs: ``<ns>/data/<robot>/scan`` (wire.Scan, congestion control BLOCK_FIRST: the first scan that
+         meets a full queue waits, newer ones are dropped at source and counted, never in pieces);
+         status values for the robot's 1 Hz status message; results in ``out_dir`` (metrics,
+         per-scan CSV, poses).
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import math
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from zoffload.mapping.cloud import drop_non_finite
 from zoffload.mapping.voxel import voxel_downsample, warmup
@@ -30,78 +32,74 @@ from zoffload.protocol import wire
 from zoffload.protocol.coding import encode_q16z, quant_step
 from zoffload.protocol.keys import Keys
 from zoffload.robot.ledger import RECORD_FIELDS, ScanLedger
+from zoffload.robot.presence import EdgePresence
 from zoffload.robot.sensor import Reading, SensorThread
-from zoffload.runtime.config import RobotSettings, write_effective
-from zoffload.runtime.errors import ConfigError
+from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.session import open_session
 from zoffload.sources import ScanSource, open_scan_source
 
-log = logging.getLogger("zoffload.robot")
+log = logging.getLogger("zoffload.robot.scans")
 
 
-class RobotDaemon:
-    def __init__(self, settings: RobotSettings, source: ScanSource | None = None,
-                 policy: ScalePolicy | None = None, stop: StopSignal | None = None) -> None:
-        self.settings = settings
-        self.keys = Keys(settings.namespace)
-        self.stop = stop or StopSignal()
-        self.source = source or open_scan_source(settings.scans, sim_seed=settings.sim_seed)
-        self.policy = policy or load_scale_policy(settings.scale_policy, settings.voxel,
-                                                  settings.voxel_range)
+@dataclass(frozen=True)
+class StreamOptions:
+    """How the streamer sends: the robot settings this pipeline uses, unpacked."""
+
+    robot_id: str
+    rate_hz: float  # the sensor's rate
+    replay: str = "once"
+    max_scans: int | None = None
+    voxel_range: tuple[float, float] = (0.01, 0.07)
+    coding: str = "q16z"  # "f32" or "q16z"
+    quant_fraction: float = 0.1
+    ack_timeout: float = 1.0
+    max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
+
+
+class ScanStreamer:
+    """A pipeline (robot/pipeline.py): sensor thread → downsample → publish → book acks."""
+
+    name = "scans"
+
+    def __init__(self, source: ScanSource, policy: ScalePolicy, keys: Keys, options: StreamOptions,
+                 stop: StopSignal) -> None:
+        self.source = source
+        self.policy = policy
+        self.keys = keys
+        self.opts = options
+        self.stop = stop
         self.ledger = ScanLedger()
-        self.edges: set[str] = set()
-        self._lock = threading.Lock()  # the ack callback and the main loop share the ledger
-        self.session: Any = None
+        self._lock = threading.Lock()  # the ack callback and the loop share the ledger
         self.voxel = self.policy.reset()
-        self._edge_seen = threading.Event()
-        self._last_ping_rtt = float("nan")
+        self.presence: EdgePresence | None = None
+        self._sensor: SensorThread | None = None
+        self._booked_overwrites = 0
 
     # Startup
-    def start(self, session: Any = None) -> None:
-        """Open the Zenoh session, or share ``session`` (then the caller closes it)."""
-        import zenoh
-
-        s = self.settings
+    def start(self, session: zenoh.Session, presence: EdgePresence) -> None:
         warmup()  # compile the voxel kernel before the first scan, not during it
-        self._owns_session = session is None
-        self.session = session if session is not None else open_session(s.zenoh)
-        self._token = self.session.liveliness().declare_token(self.keys.robot_alive(s.robot_id))
-        self._edge_sub = self.session.liveliness().declare_subscriber(
-            self.keys.any_edge_alive(), self._on_edge_liveliness, history=True
-        )
-        self._ack_sub = self.session.declare_subscriber(self.keys.scan_ack(s.robot_id), self._on_ack)
+        self.presence = presence
+        robot = self.opts.robot_id
+        self._ack_sub = session.declare_subscriber(self.keys.scan_ack(robot), self._on_ack)
         # BLOCK_FIRST: on a congested link the first scan waits for room (the loop blocks; the
         # sensor's newer scans are dropped at source and counted) and others are dropped whole.
         # With DROP every fragment of a large scan gets only 50 ms to find room, so on a narrow
         # link every large scan loses some fragments and none reassembles (KITTI-360 raw at
         # 20 Mbps: 0 of 100 scans received with DROP, 16 with BLOCK_FIRST).
-        self._scan_pub = self.session.declare_publisher(
-            self.keys.scan(s.robot_id), congestion_control=zenoh.CongestionControl.BLOCK_FIRST
-        )
-        self._status_pub = self.session.declare_publisher(
-            self.keys.robot_status(s.robot_id), congestion_control=zenoh.CongestionControl.DROP
-        )
-        log.info("robot %s up: source %s (%d scans), policy %s", s.robot_id, self.source.name,
-                 len(self.source), self.policy.name)
-        if s.wait_edge > 0 and not self._edge_seen.wait(s.wait_edge):
-            log.warning("no edge after %.1f s; running anyway, scans are dropped until one appears",
-                        s.wait_edge)
+        self._scan_pub = session.declare_publisher(
+            self.keys.scan(robot), congestion_control=zenoh.CongestionControl.BLOCK_FIRST)
+        log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
+                 self.policy.name, self.opts.coding)
 
-    def _on_edge_liveliness(self, sample: Any) -> None:
-        import zenoh
+    def close(self) -> None:
+        for entity in (getattr(self, "_ack_sub", None), getattr(self, "_scan_pub", None)):
+            if entity is not None:
+                try:
+                    entity.undeclare()
+                except Exception as exc:  # the session is closing
+                    log.debug("not undeclared: %s", exc)
 
-        edge = self.keys.last_chunk(str(sample.key_expr))
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.edges.add(edge)
-                self._edge_seen.set()
-                log.info("edge %s present", edge)
-            else:
-                self.edges.discard(edge)
-                log.warning("edge %s gone%s", edge, "" if self.edges else ": no edge left")
-
-    def _on_ack(self, sample: Any) -> None:
+    def _on_ack(self, sample: zenoh.Sample) -> None:
         recv = time.monotonic()
         try:
             ack = wire.decode(sample.payload.to_bytes(), expect=wire.ScanAck)
@@ -110,27 +108,26 @@ class RobotDaemon:
                 self.ledger.counters["malformed_acks"] += 1
             log.warning("dropped malformed ack: %s", exc)
             return
-        assert isinstance(ack, wire.ScanAck)
         with self._lock:
             self.ledger.on_ack(ack, recv)
 
     # Per-scan work
     def process(self, reading: Reading) -> None:
-        s = self.settings
         t0 = time.perf_counter()
         pts, n_nonfinite = drop_non_finite(reading.frame.points)
         record: dict[str, Any] = {"index": reading.frame.index, "capture_stamp": reading.capture_stamp,
                                   "n_raw": len(pts), "n_nonfinite": n_nonfinite}
         if reading.frame.gt_pose is not None:
             self.ledger.gt_poses[reading.seq] = reading.frame.gt_pose
+        edge_present = self.presence is not None and self.presence.any
         with self._lock:
             if len(pts) == 0:
                 self.ledger.drop_at_source(reading.seq, "empty", record)
                 return
-            if not self.edges:
+            if not edge_present:
                 self.ledger.drop_at_source(reading.seq, "edge_absent", record)
                 return
-            if s.max_in_flight and self.ledger.in_flight >= s.max_in_flight:
+            if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 return
             last_t = self.ledger.last_interarrival
@@ -143,20 +140,18 @@ class RobotDaemon:
             down = voxel_downsample(pts, self.voxel).astype(np.float32) if self.voxel > 0 else pts
         # Encode and send
         send_stamp = time.monotonic()
-        msg = self._scan_message(reading, send_stamp, len(pts), down)
-        data = wire.encode(msg)
+        data = wire.encode(self._scan_message(reading, send_stamp, len(pts), down))
         record.update(voxel=self.voxel, n_sent=len(down), bytes=len(data))
         with self._lock:
             self.ledger.published(reading.seq, send_stamp, record)
         self._scan_pub.put(data)
-        record_work = (time.perf_counter() - t0) * 1e3
+        work_ms = (time.perf_counter() - t0) * 1e3
         with self._lock:
-            self.ledger.records[reading.seq]["work_ms"] = record_work
+            self.ledger.records[reading.seq]["work_ms"] = work_ms
 
     def _link_view(self) -> LinkView:
         """The link as the acks show it: last T, bytes acked in the last second, bytes per point."""
         now = time.monotonic()
-        rate = self.settings.rate_hz or self.source.rate_hz
         with self._lock:
             recs = list(self.ledger.records.values())[-60:]
             last_t = self.ledger.last_interarrival
@@ -171,40 +166,33 @@ class RobotDaemon:
             acked_bytes_per_s=float("nan") if young else float(sum(r["bytes"] for r in recent)),
             bytes_per_point=(sum(r["bytes"] for r in sent) / sum(r["n_sent"] for r in sent)) if sent
             else float("nan"),
-            period=1.0 / rate,
+            period=1.0 / self.opts.rate_hz,
             acks=seen)
 
     def _scan_message(self, reading: Reading, send_stamp: float, n_raw: int, down: np.ndarray) -> wire.Scan:
-        s = self.settings
-        common = dict(robot=s.robot_id, seq=reading.seq, send_stamp=send_stamp,
-                      capture_stamp=reading.capture_stamp, voxel=self.voxel,
-                      voxel_max=max(s.voxel_range[1], self.voxel), max_range=self.source.max_range,
-                      n_raw=n_raw)
-        if s.scan_coding == "q16z":
-            origin, step, blob = encode_q16z(down, quant_step(self.voxel, s.quant_fraction), widen=True)
-            return wire.Scan(**common, points=np.zeros((0, 3), np.float32), coding="q16z",  # type: ignore[arg-type]
+        o = self.opts
+        common: dict[str, Any] = dict(
+            robot=o.robot_id, seq=reading.seq, send_stamp=send_stamp, capture_stamp=reading.capture_stamp,
+            voxel=self.voxel, voxel_max=max(o.voxel_range[1], self.voxel), max_range=self.source.max_range,
+            n_raw=n_raw)
+        if o.coding == "q16z":
+            origin, step, blob = encode_q16z(down, quant_step(self.voxel, o.quant_fraction), widen=True)
+            return wire.Scan(**common, points=np.zeros((0, 3), np.float32), coding="q16z",
                              quant_step=step, n_points=len(down), origin=origin,
                              packed=np.frombuffer(blob, np.uint8))
-        return wire.Scan(**common, points=np.ascontiguousarray(down, np.float32))  # type: ignore[arg-type]
+        return wire.Scan(**common, points=np.ascontiguousarray(down, np.float32))
 
     # Main loop
-    def run(self) -> dict[str, Any]:
-        s = self.settings
-        rate = s.rate_hz or self.source.rate_hz
-        sensor = SensorThread(self.source, rate, s.replay, s.max_scans)
+    def run(self) -> None:
+        o = self.opts
+        sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
         sensor.start()
-        next_status = time.monotonic()
-        self._booked_overwrites = 0
         try:
             while not self.stop.is_set():
                 reading = sensor.take(timeout=0.05)
-                now = time.monotonic()
                 with self._lock:
-                    self.ledger.expire(now, s.ack_timeout)
+                    self.ledger.expire(time.monotonic(), o.ack_timeout)
                     self._book_overwrites(sensor)
-                if now >= next_status:
-                    self._publish_status(sensor)
-                    next_status = now + s.status_period
                 if reading is None:
                     if sensor.exhausted:
                         break
@@ -223,8 +211,6 @@ class RobotDaemon:
                 self.ledger.counters["read_errors"] += sensor.read_errors
                 self._book_overwrites(sensor)
             self._drain()
-            self._publish_status(sensor)
-        return self.metrics()
 
     def _book_overwrites(self, sensor: SensorThread) -> None:
         """Scans the sensor replaced before the loop took them: produced, dropped at source."""
@@ -236,7 +222,7 @@ class RobotDaemon:
 
     def _drain(self) -> None:
         """Give in-flight scans their ack timeout, then book the rest as lost."""
-        deadline = time.monotonic() + self.settings.ack_timeout
+        deadline = time.monotonic() + self.opts.ack_timeout
         while time.monotonic() < deadline:
             with self._lock:
                 if self.ledger.in_flight == 0:
@@ -245,21 +231,16 @@ class RobotDaemon:
         with self._lock:
             self.ledger.finish()
 
-    def _publish_status(self, sensor: SensorThread) -> None:
+    def status(self) -> dict[str, float]:
         with self._lock:
             values = {k: float(v) for k, v in self.ledger.balance().items()}
             values["voxel"] = float(self.voxel)
-            values["edges"] = float(len(self.edges))
             values["last_T"] = float(self.ledger.last_interarrival)
             recent = [r for r in list(self.ledger.records.values())[-20:] if "rtt" in r]
         if recent:
             values["rtt_ms"] = float(np.mean([r["rtt"] for r in recent]) * 1e3)
             values["map_points"] = float(recent[-1]["map_points"])
-        status = wire.Status(source="robot", id=self.settings.robot_id, stamp=time.time(), values=values)
-        try:
-            self._status_pub.put(wire.encode(status))
-        except Exception as exc:  # status is best effort
-            log.debug("status not published: %s", exc)
+        return values
 
     # Results
     def metrics(self) -> dict[str, Any]:
@@ -267,7 +248,7 @@ class RobotDaemon:
             recs = [self.ledger.records[k] for k in sorted(self.ledger.records)]
             balance = self.ledger.balance()
             out: dict[str, Any] = {
-                "robot": self.settings.robot_id,
+                "robot": self.opts.robot_id,
                 "source": self.source.name,
                 "policy": self.policy.name,
                 "balance": balance,
@@ -294,7 +275,6 @@ class RobotDaemon:
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        write_effective(self.settings, out_dir / "robot_config.yaml")
         (out_dir / "robot_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
         with self._lock:
             recs = [self.ledger.records[k] for k in sorted(self.ledger.records)]
@@ -313,73 +293,15 @@ class RobotDaemon:
             gt_poses=np.array([gts[k] for k in sorted(gts)]).reshape(-1, 4, 4),
         )
 
-    # Shutdown
-    def shutdown(self) -> None:
-        if self.session is not None and getattr(self, "_owns_session", True):
-            self.session.close()
-        self.session = None
 
-
-def run(settings: RobotSettings, stop: StopSignal | None = None) -> dict[str, Any]:
-    """The Python API of ``zoffload-robot``: start, replay until done or stopped, write results.
-
-    Scans (``scans``, unless "none") and camera frames (``images``) run side by side on one
-    Zenoh session; the scan loop keeps the main thread, the image offloader its own. The returned
-    metrics are the scan daemon's, with the image offloader's under ``vision``."""
-    from zoffload.robot.camera import ImageOffloader
-
-    stop = stop or StopSignal()
-    if settings.scans == "none" and not settings.images:
-        raise ConfigError("nothing to do: scans is 'none' and no images are configured")
-    quota = None
-    if settings.perception.cpu_quota:
-        from zoffload.runtime.quota import apply_cpu_quota
-
-        quota = apply_cpu_quota(settings.perception.cpu_quota)
-        if quota == "threads":
-            n = max(1, math.ceil(settings.perception.cpu_quota))
-            settings = settings.model_copy(update={"perception": settings.perception.model_copy(
-                update={"local_threads": min(settings.perception.local_threads or n, n)})})
-    daemon = RobotDaemon(settings, stop=stop) if settings.scans != "none" else None
-    vision = ImageOffloader(settings, None, stop) if settings.images else None
-    session = open_session(settings.zenoh)
-    metrics: dict[str, Any] = {}
-    try:
-        if daemon is not None:
-            daemon.start(session)
-        else:
-            alive = Keys(settings.namespace).robot_alive(settings.robot_id)
-            token = session.liveliness().declare_token(alive)
-        vthread = None
-        if vision is not None:
-            vision.session = session
-            vision.start()
-            if daemon is not None:
-                vthread = threading.Thread(target=vision.run, name="vision", daemon=True)
-                vthread.start()
-            else:
-                vision.run()
-        if daemon is not None:
-            metrics = daemon.run()
-        if vthread is not None:
-            vthread.join()
-        if vision is not None:
-            metrics["vision"] = vision.metrics()
-            metrics["vision"]["cpu_quota"] = quota
-        if settings.out_dir:
-            if daemon is not None:
-                daemon.write_results(Path(settings.out_dir))
-            if vision is not None:
-                vision.write_results(Path(settings.out_dir))
-                write_effective(settings, Path(settings.out_dir) / "robot_config.yaml")
-    finally:
-        if daemon is not None:
-            daemon.shutdown()
-        elif "token" in locals():
-            token.undeclare()
-        session.close()
-    if daemon is not None:
-        log.info("robot done: %s", json.dumps(metrics["balance"]))
-    if vision is not None:
-        log.info("camera done: %s", json.dumps(metrics["vision"]["balance"]))
-    return metrics
+def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource | None = None,
+                  policy: ScalePolicy | None = None) -> ScanStreamer:
+    """The scan pipeline for these settings (``source`` and ``policy`` to inject others)."""
+    source = source or open_scan_source(settings.scans, sim_seed=settings.sim_seed)
+    policy = policy or load_scale_policy(settings.scale_policy, settings.voxel, settings.voxel_range)
+    options = StreamOptions(
+        robot_id=settings.robot_id, rate_hz=settings.rate_hz or source.rate_hz, replay=settings.replay,
+        max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
+        quant_fraction=settings.quant_fraction, ack_timeout=settings.ack_timeout,
+        max_in_flight=settings.max_in_flight)
+    return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

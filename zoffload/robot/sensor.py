@@ -19,6 +19,7 @@ class FrameSource(Protocol):
     """Anything with a length and frames by index: scan sources and image sources alike."""
 
     name: str
+    rate_hz: float
 
     def __len__(self) -> int: ...
 

@@ -1,23 +1,35 @@
 """Typed configuration: defaults, then a YAML file, then ``ZOFFLOAD_*`` environment variables,
 then command-line flags; unknown keys are errors. The effective config is written beside results.
 
+Each setting is declared once, as a field here: its ``description`` is the help text of its
+command-line flag (``zoffload.cli.flags`` builds the daemons' flags from these models).
+
 Environment variables address nested keys with ``__``: ``ZOFFLOAD_ROBOT__VOXEL=0.03`` or
-``ZOFFLOAD_EDGE__MAPPER__MAX_POINTS_PER_VOXEL=10``; values are parsed as YAML scalars/lists.
+``ZOFFLOAD_EDGE__MAPPER__MAX_POINTS_PER_VOXEL=10``. Lists, pairs and whole sections are YAML
+(``ZOFFLOAD_ROBOT__ZENOH__CONNECT=[tcp/10.0.0.2:7447]``); ``null`` unsets an optional value and an
+empty variable counts as unset. A variable under the prefix that names no setting is an error.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import types
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, Union, cast, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsError
+from pydantic_settings.sources.utils import parse_env_vars
 
 from zoffload.protocol.keys import DEFAULT_NAMESPACE, check_id
 from zoffload.runtime.errors import ConfigError
 from zoffload.sources.base import Replay
+
+DetectorModel = Literal["nanodet-m", "picodet-s", "yolox-nano"]
 
 
 class _Strict(BaseModel):
@@ -27,15 +39,22 @@ class _Strict(BaseModel):
 class ZenohSettings(_Strict):
     """The session flags every zoffload program takes (as the zenoh examples do)."""
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    connect: list[str] = Field(default_factory=list)
-    listen: list[str] = Field(default_factory=list)
-    multicast_scouting: bool = True
-    # Off whenever traffic must really cross a (shaped) link: with it on, same-host peers pass
-    # large payloads through shared memory and only references cross the TCP connection.
-    shared_memory: bool = True
-    config_file: str | None = None
-    cfg: list[str] = Field(default_factory=list)  # "KEY:VALUE" with VALUE in JSON5
+    mode: Literal["peer", "client", "router"] = Field(default="peer", description="Zenoh session mode")
+    connect: list[str] = Field(default_factory=list, description="endpoint to connect to")
+    listen: list[str] = Field(default_factory=list, description="endpoint to listen on")
+    multicast_scouting: bool = Field(default=True, description="discover peers by UDP multicast scouting")
+    # With it on, same-host peers pass large payloads through shared memory and only references
+    # cross the TCP connection: off whenever traffic must really cross a (shaped) link.
+    shared_memory: bool = Field(
+        default=True,
+        description="exchange payloads with same-host peers in shared memory; off behind the link emulator",
+    )
+    config_file: str | None = Field(
+        default=None, description="Zenoh JSON5 config file, applied before the other session settings"
+    )
+    cfg: list[str] = Field(
+        default_factory=list, description="any Zenoh config key as KEY:VALUE, VALUE in JSON5"
+    )
 
     @field_validator("cfg")
     @classmethod
@@ -47,49 +66,98 @@ class ZenohSettings(_Strict):
 
 
 class MapperSettings(_Strict):
-    """KISS-ICP on the edge. ``voxel_size`` None = max(max_range / 100, 2 x robot's voxel_max)."""
+    """KISS-ICP on the edge."""
 
-    enabled: bool = True  # False: receive and ack only (link checks, stream benchmarks)
-    voxel_size: float | None = Field(default=None, gt=0)
-    min_range: float = Field(default=0.0, ge=0)
-    max_range: float | None = Field(default=None, gt=0)  # None: the sensor's, sent by the robot
-    max_points_per_voxel: int = Field(default=20, ge=1)
-    deskew: bool = False  # scans carry no per-point timestamps on the wire
-    map_resolution: float = Field(default=0.1, gt=0)  # global map: one point per voxel this size
-    queue: int = Field(default=2, ge=1)  # scans waiting per robot before the oldest is dropped
+    enabled: bool = Field(
+        default=True,
+        description="map the scans (off: receive and ack only, for link checks)",
+    )
+    voxel_size: float | None = Field(
+        default=None, gt=0,
+        description="KISS-ICP voxel in m; unset: max(max_range / 100, 2 x robot's voxel_max)",
+    )
+    min_range: float = Field(default=0.0, ge=0, description="ignore points closer than this, in m")
+    max_range: float | None = Field(
+        default=None, gt=0,
+        description="ignore points farther than this, in m; unset: the sensor's, from the robot",
+    )
+    max_points_per_voxel: int = Field(default=20, ge=1, description="KISS-ICP local map density")
+    deskew: bool = Field(
+        default=False,
+        description="deskew scans (they carry no per-point timestamps on the wire)",
+    )
+    map_resolution: float = Field(
+        default=0.1, gt=0, description="global map: one point per voxel of this size, in m"
+    )
+    queue: int = Field(default=2, ge=1, description="scans waiting per robot before the oldest is dropped")
 
 
 class DetectorSettings(_Strict):
-    """The edge's object detector. ``enabled`` None = on when the model file can be found."""
+    """The edge's object detector."""
 
-    enabled: bool | None = None
-    model: Literal["nanodet-m", "picodet-s", "yolox-nano"] = "picodet-s"
-    model_path: str | None = None
-    model_url: str | None = None  # optional download, checked against the pinned SHA-256
-    threads: int = Field(default=0, ge=0)  # onnxruntime intra-op threads; 0 = its default
-    queue: int = Field(default=2, ge=1)  # frames waiting per robot before the oldest is dropped
-    batch: int = Field(default=4, ge=1)  # frames taken per pass when they queue up
+    enabled: bool | None = Field(
+        default=None,
+        description="run the detector; unset: when its model file is found (on: a missing model is fatal)",
+    )
+    model: DetectorModel = Field(default="picodet-s", description="detector model")
+    model_path: str | None = Field(
+        default=None, description="the model's ONNX file; unset: searched in the model folders"
+    )
+    model_url: str | None = Field(
+        default=None, description="download the model from here, checked against the pinned SHA-256"
+    )
+    threads: int = Field(default=0, ge=0, description="onnxruntime intra-op threads; 0 = its default")
+    queue: int = Field(default=2, ge=1, description="frames waiting per robot before the oldest is dropped")
+    batch: int = Field(default=4, ge=1, description="frames taken per pass when they queue up")
 
 
 class PerceptionSettings(_Strict):
     """The robot's camera pipeline: where each frame is detected, and the local detector."""
 
-    strategy: str = "dynamic"  # robot | edge | ratio:R | thesis | dynamic
-    local_model: Literal["nanodet-m", "picodet-s", "yolox-nano"] = "nanodet-m"
-    local_model_path: str | None = None
-    local_threads: int = Field(default=1, ge=0)  # onnxruntime threads of the local detector
-    fps: float | None = Field(default=None, gt=0)  # None: the source's rate (25 for coco-clips)
-    max_frames: int | None = Field(default=None, ge=1)
-    encoding: Literal["bgr8", "jpeg"] = "bgr8"
-    jpeg_quality: int = Field(default=80, ge=1, le=100)
-    cpu_max: float = Field(default=90.0, gt=0)  # the rule's CPU bound (process %, one core = 100)
-    bw_max_mbps: float | None = Field(default=None, gt=0)  # the rule's bandwidth bound; None = none
-    max_in_flight: int = Field(default=4, ge=0)  # dynamic: its window's upper end (unanswered frames)
-    reply_timeout: float = Field(default=0.5, gt=0)  # an edge frame unanswered this long is lost
-    fallback_losses: int = Field(default=3, ge=1)  # lost in a row (and a silent edge) → fallback
-    probe_period: float = Field(default=0.5, gt=0)  # in fallback: one frame to the edge this often
-    resume_after: int = Field(default=3, ge=1)  # consecutive prompt probe replies to resume
-    cpu_quota: float | None = Field(default=None, gt=0)  # cores the robot process may use (CFS)
+    strategy: str = Field(
+        default="dynamic",
+        description="where each frame is detected: robot, edge, ratio:R, thesis or dynamic (ours)",
+    )
+    local_model: DetectorModel = Field(default="nanodet-m", description="the robot's own detector model")
+    local_model_path: str | None = Field(
+        default=None, description="the local model's ONNX file; unset: searched in the model folders"
+    )
+    local_threads: int = Field(default=1, ge=0, description="onnxruntime threads of the local detector")
+    fps: float | None = Field(
+        default=None, gt=0, description="camera rate; unset: the source's (25 for coco-clips)"
+    )
+    max_frames: int | None = Field(default=None, ge=1, description="stop the camera after this many frames")
+    encoding: Literal["bgr8", "jpeg"] = Field(
+        default="bgr8",
+        description="frames to the edge raw (bgr8) or as JPEG",
+    )
+    jpeg_quality: int = Field(default=80, ge=1, le=100, description="JPEG quality of frames sent as jpeg")
+    cpu_max: float = Field(
+        default=90.0, gt=0, description="the rule's CPU bound: process %, one core = 100 (above it: edge)"
+    )
+    bw_max_mbps: float | None = Field(
+        default=None, gt=0, description="the rule's bandwidth bound in Mbps (above it: robot); unset: none"
+    )
+    max_in_flight: int = Field(
+        default=4, ge=0,
+        description="dynamic: its window's upper end of unanswered frames",
+    )
+    reply_timeout: float = Field(
+        default=0.5, gt=0, description="seconds before an unanswered edge frame is lost"
+    )
+    fallback_losses: int = Field(
+        default=3, ge=1,
+        description="frames lost in a row (with a silent edge) before falling back to the robot",
+    )
+    probe_period: float = Field(
+        default=0.5, gt=0, description="in fallback: seconds between probe frames to the edge"
+    )
+    resume_after: int = Field(
+        default=3, ge=1, description="prompt probe replies in a row to resume offloading"
+    )
+    cpu_quota: float | None = Field(
+        default=None, gt=0, description="cores the robot process may use (CFS quota); unset: no quota"
+    )
 
     @field_validator("strategy")
     @classmethod
@@ -101,32 +169,63 @@ class PerceptionSettings(_Strict):
 
 
 class RobotSettings(_Strict):
-    robot_id: str = "robot1"
-    namespace: str = DEFAULT_NAMESPACE
-    scans: str = "sim"  # "sim", a folder of .bin / .pcd / .ply scans, or "none"
-    images: str | None = None  # camera: "coco-clips[:FOLDER]", an image folder or a video file
-    replay: Replay = "once"
-    rate_hz: float | None = Field(default=None, gt=0)  # None: the source's own rate
-    max_scans: int | None = Field(default=None, ge=1)
-    sim_seed: int = 0
-    voxel: float = Field(default=0.05, ge=0)  # fixed voxel size, rate's start, DQN's fallback; 0 = raw
-    # "rate" (ours, the default: sized for the link from the acks), "fixed", "dqn" (the packaged
-    # model) or "dqn:PATH". Measured against each other in README "Experiments" / "Ours".
-    scale_policy: str = "rate"
-    voxel_range: tuple[float, float] = (0.01, 0.07)
-    # Scan payload: "f32" floats, or "q16z" (coordinates quantised to quant_fraction x voxel
-    # size, 5 mm for raw scans, then Zstandard-compressed; decoded on the edge)
-    scan_coding: Literal["f32", "q16z"] = "q16z"
-    quant_fraction: float = Field(default=0.1, gt=0, le=0.5)
-    ack_timeout: float = Field(default=1.0, gt=0)  # an unanswered scan is lost after this
-    # Scans sent but not yet answered before a new one waits its turn (dropped at source, newest
-    # kept): like a TCP window, it keeps the link carrying whole scans. 0 = no limit.
-    max_in_flight: int = Field(default=3, ge=0)
-    status_period: float = Field(default=1.0, gt=0)
-    wait_edge: float = Field(default=5.0, ge=0)  # seconds to wait for an edge at start
-    out_dir: str | None = None
-    perception: PerceptionSettings = Field(default_factory=PerceptionSettings)
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    """The robot daemon: a scan source, its voxel sizing, the link to the edge and the camera."""
+
+    robot_id: str = Field(default="robot1", description="this robot's id (one key chunk)")
+    namespace: str = Field(default=DEFAULT_NAMESPACE, description="key namespace, the same on robot and edge")
+    scans: str = Field(
+        default="sim",
+        description="scan source: sim, a folder of .bin/.pcd/.ply scans, or none",
+    )
+    images: str | None = Field(
+        default=None,
+        description="camera: coco-clips[:FOLDER], an image folder or a video file; unset: no camera",
+    )
+    replay: Replay = Field(
+        default="once", description="how a recorded source is replayed (pingpong: forward then back)"
+    )
+    rate_hz: float | None = Field(
+        default=None, gt=0, description="sensor rate in Hz; unset: the source's own rate"
+    )
+    max_scans: int | None = Field(default=None, ge=1, description="stop after this many scans")
+    sim_seed: int = Field(default=0, description="simulator scene seed")
+    voxel: float = Field(
+        default=0.05, ge=0,
+        description="voxel size in m: the fixed policy's, the rate policy's start, the DQN fallback; 0 = raw",
+    )
+    # Measured against each other in README "Experiments" / "Ours".
+    scale_policy: str = Field(
+        default="rate",
+        description="voxel sizing: rate (ours, sized for the link from the acks), fixed, dqn, dqn:PATH",
+    )
+    voxel_range: tuple[float, float] = Field(
+        default=(0.01, 0.07), description="the scale policy's voxel range in m (0.02 0.5 for an HDL-64)"
+    )
+    scan_coding: Literal["f32", "q16z"] = Field(
+        default="q16z",
+        description="scan payload: f32 floats, or q16z (quantised, Zstandard; decoded on the edge)",
+    )
+    quant_fraction: float = Field(
+        default=0.1, gt=0, le=0.5, description="q16z step as a fraction of the voxel size (raw scans: 5 mm)"
+    )
+    ack_timeout: float = Field(default=1.0, gt=0, description="seconds before an unanswered scan is lost")
+    # Like a TCP window, the limit keeps the link carrying whole scans: the excess is dropped at
+    # the source, newest kept.
+    max_in_flight: int = Field(
+        default=3, ge=0, description="unanswered scans before the next is held back; 0 = no limit"
+    )
+    status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
+    wait_edge: float = Field(
+        default=5.0, ge=0, description="seconds to wait for an edge at start (it runs on without one)"
+    )
+    out_dir: str | None = Field(
+        default=None,
+        description="results folder (config, metrics, per-scan CSV, poses)",
+    )
+    perception: PerceptionSettings = Field(
+        default_factory=PerceptionSettings, description="the camera pipeline"
+    )
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="the Zenoh session")
 
     @field_validator("robot_id", "namespace")
     @classmethod
@@ -142,14 +241,18 @@ class RobotSettings(_Strict):
 
 
 class EdgeSettings(_Strict):
-    edge_id: str = "edge1"
-    namespace: str = DEFAULT_NAMESPACE
-    mapper: MapperSettings = Field(default_factory=MapperSettings)
-    detector: DetectorSettings = Field(default_factory=DetectorSettings)
-    map_dir: str | None = None  # export every robot's map here on shutdown
-    map_format: Literal["ply", "pcd"] = "ply"
-    status_period: float = Field(default=1.0, gt=0)
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    """The edge daemon: maps each robot's scans and serves its detector."""
+
+    edge_id: str = Field(default="edge1", description="this edge's id (one key chunk)")
+    namespace: str = Field(default=DEFAULT_NAMESPACE, description="key namespace, the same on robot and edge")
+    mapper: MapperSettings = Field(default_factory=MapperSettings, description="KISS-ICP mapping")
+    detector: DetectorSettings = Field(default_factory=DetectorSettings, description="the object detector")
+    map_dir: str | None = Field(
+        default=None, description="export every robot's map and trajectory here on shutdown"
+    )
+    map_format: Literal["ply", "pcd"] = Field(default="ply", description="file format of the exported maps")
+    status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="the Zenoh session")
 
     @field_validator("edge_id", "namespace")
     @classmethod
@@ -158,6 +261,23 @@ class EdgeSettings(_Strict):
 
 
 S = TypeVar("S", bound=BaseModel)
+
+
+def unwrap_optional(annotation: Any) -> Any:
+    """``X | None`` → ``X``; any other annotation unchanged."""
+    if get_origin(annotation) in (Union, types.UnionType):
+        members = [a for a in get_args(annotation) if a is not type(None)]
+        if len(members) == 1:
+            return members[0]
+    return annotation
+
+
+def section_model(field: FieldInfo) -> type[BaseModel] | None:
+    """The settings model a field holds (``perception``, ``zenoh``...), None for a plain value."""
+    annotation = unwrap_optional(field.annotation)
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    return None
 
 
 def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
@@ -170,22 +290,84 @@ def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]
     return out
 
 
-def env_overrides(prefix: str, environ: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """Nested overrides from ``<prefix>KEY__SUBKEY=value`` variables."""
-    environ = os.environ if environ is None else environ
-    out: dict[str, Any] = {}
-    for name, raw in environ.items():
-        if not name.startswith(prefix) or name == prefix:
-            continue
-        path = name[len(prefix):].lower().split("__")
-        node = out
-        for part in path[:-1]:
-            node = node.setdefault(part, {})
+class _EnvironmentSource(EnvSettingsSource):
+    """pydantic-settings' environment source reading a given mapping (tests pass their own), with
+    complex values (lists, pairs, sections) in YAML rather than JSON so that
+    ``[tcp/127.0.0.1:7447]`` needs no quoting; scalars stay strings for pydantic to parse."""
+
+    def __init__(self, settings_cls: type[BaseSettings], prefix: str, environ: Mapping[str, str]) -> None:
+        self._environ = environ  # read by _load_env_vars, which the base __init__ calls
+        super().__init__(settings_cls, case_sensitive=False, env_prefix=prefix, env_nested_delimiter="__",
+                         env_ignore_empty=True, env_parse_none_str="null")
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        # The hook pydantic-settings' own dotenv source overrides to read somewhere else.
+        return parse_env_vars(self._environ, self.case_sensitive, self.env_ignore_empty,
+                              self.env_parse_none_str)
+
+    def decode_complex_value(self, field_name: str, field: FieldInfo, value: Any) -> Any:
         try:
-            node[path[-1]] = yaml.safe_load(raw) if raw != "" else None
+            return yaml.safe_load(value)
         except yaml.YAMLError as exc:
-            raise ConfigError(f"environment variable {name}: cannot parse {raw!r}: {exc}") from exc
-    return out
+            # ConfigError, not ValueError: pydantic-settings would rewrap a ValueError in a message
+            # naming its own classes; this one names the variable.
+            name = next((n for n, v in self._environ.items() if v == value
+                         and n.lower().startswith(self.env_prefix.lower())
+                         and n.lower().endswith(field_name.lower())), f"{self.env_prefix}...{field_name}")
+            problem = getattr(exc, "problem", None) or exc
+            raise ConfigError(f"environment variable {name}: {value!r} is not valid YAML: {problem}") from exc
+
+
+@functools.cache
+def _settings_class(cls: type[BaseModel]) -> type[BaseSettings]:
+    """``cls`` with BaseSettings mixed in, as pydantic-settings' sources expect. The models stay
+    plain BaseModels so that building one in Python (tests, the demo) never reads the environment."""
+    mixed = type(cls.__name__, (BaseSettings, cls), {"__module__": cls.__module__, "__doc__": cls.__doc__})
+    return cast("type[BaseSettings]", mixed)
+
+
+def _check_variable_names(cls: type[BaseModel], prefix: str, environ: Mapping[str, str]) -> None:
+    """A variable under the prefix must name a setting: pydantic-settings skips the others, and a
+    typo silently ignored is a classic field bug."""
+    for name in environ:
+        if not name.upper().startswith(prefix.upper()):
+            continue
+        keys = name[len(prefix):].lower().split("__")
+        model: type[BaseModel] | None = cls
+        for depth, key in enumerate(keys):
+            if model is None:
+                raise ConfigError(f"environment variable {name}: {'.'.join(keys[:depth])} is a value, "
+                                  "not a section")
+            field = model.model_fields.get(key)
+            if field is None:
+                path = ".".join(keys[: depth + 1])
+                raise ConfigError(f"environment variable {name}: {cls.__name__} has no setting {path!r}")
+            model = section_model(field)
+
+
+def environment_values(
+    cls: type[BaseModel], prefix: str, environ: Mapping[str, str] | None = None
+) -> dict[str, Any]:
+    """The nested values that ``<prefix>KEY`` / ``<prefix>SECTION__KEY`` variables set, not yet validated."""
+    environ = os.environ if environ is None else environ
+    _check_variable_names(cls, prefix, environ)
+    try:
+        return _EnvironmentSource(_settings_class(cls), prefix, environ)()
+    except SettingsError as exc:  # not expected from our source; kept readable all the same
+        raise ConfigError(f"environment variables {prefix}*: {exc}") from exc
+
+
+def _read_file(file: str | Path) -> dict[str, Any]:
+    path = Path(file)
+    try:
+        loaded = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise ConfigError(f"config file {path}: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: not valid YAML: {exc}") from exc
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"config file {path}: the top level must be a mapping")
+    return loaded
 
 
 def load_settings(
@@ -195,21 +377,12 @@ def load_settings(
     env_prefix: str | None = None,
     environ: Mapping[str, str] | None = None,
 ) -> S:
-    """Defaults < YAML file < environment < flags, validated; ``ConfigError`` names what is wrong."""
-    data: dict[str, Any] = {}
-    if file is not None:
-        path = Path(file)
-        try:
-            loaded = yaml.safe_load(path.read_text()) or {}
-        except OSError as exc:
-            raise ConfigError(f"config file {path}: {exc.strerror}") from exc
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path}: not valid YAML: {exc}") from exc
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"config file {path}: the top level must be a mapping")
-        data = loaded
+    """Defaults < YAML file < environment < flags, validated; ``ConfigError`` names what is wrong.
+
+    Only ``env_prefix`` makes it read the environment (``environ``, else ``os.environ``)."""
+    data = _read_file(file) if file is not None else {}
     if env_prefix:
-        data = _deep_merge(data, env_overrides(env_prefix, environ))
+        data = _deep_merge(data, environment_values(cls, env_prefix, environ))
     if flags:
         data = _deep_merge(data, {k: v for k, v in flags.items() if v is not None})
     try:

@@ -14,9 +14,9 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import psutil
+import zenoh
 
 from zoffload.policy.smoothing import MovingAverage
 
@@ -95,7 +95,7 @@ class Pinger:
     """Ping-pong over a Zenoh queryable once per ``period``: the round trip in ms, smoothed.
     An unanswered ping counts as ``timeout`` (the link is at least that slow)."""
 
-    def __init__(self, session: Any, key: str, period: float = 1.0, timeout: float = 1.0,
+    def __init__(self, session: zenoh.Session, key: str, period: float = 1.0, timeout: float = 1.0,
                  window: int = 5) -> None:
         self.session, self.key, self.period, self.timeout = session, key, period, timeout
         self.rtt = MovingAverage(window)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import socket
+from typing import Any
 
 import zenoh
 
@@ -52,3 +53,10 @@ def open_session(z: ZenohSettings) -> zenoh.Session:
             f"cannot open the Zenoh session (mode={z.mode}, listen={z.listen}, "
             f"connect={z.connect}): {exc}"
         ) from exc
+
+
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches this publisher now. (zenoh-python 1.10's stub types
+    ``matching_status`` as bool; at run time it is a ``MatchingStatus`` with ``.matching``.)"""
+    status: Any = publisher.matching_status
+    return bool(getattr(status, "matching", status))

@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from zoffload.policy.dqn import TrainResult
+
 
 def _plt() -> Any:
     import matplotlib
@@ -35,5 +37,25 @@ def plot_trajectory_and_map(path: Path, est_xyz: np.ndarray, ref_xyz: np.ndarray
     ax.legend(loc="best", markerscale=20)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_training_curves(path: Path, result: TrainResult) -> Path:
+    """Reward (smoothed), loss and exploration rate over a DQN training run."""
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=False)
+    w = max(1, len(result.rewards) // 300)
+    smooth = np.convolve(result.rewards, np.ones(w) / w, mode="valid")
+    axes[0].plot(smooth)
+    axes[0].set_ylabel(f"reward (mean of {w})")
+    axes[1].plot(result.losses)
+    axes[1].set_ylabel("loss (every 100 eps)")
+    axes[1].set_yscale("log")
+    axes[2].plot(result.epsilons)
+    axes[2].set_ylabel("epsilon")
+    axes[2].set_xlabel("episode")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
     plt.close(fig)
     return path

@@ -8,7 +8,7 @@ Each direction is modelled as a serial link with a bounded queue:
 * it is delivered ``delay + jitter`` later (jitter is Gaussian, clipped at 0; delivery order is
   kept, as TCP would);
 * while more than ``queue_ms`` of transmission is waiting, the proxy stops reading from that side,
-  so TCP backpressure reaches the sender (where Zenoh's congestion control DROP can act);
+  so TCP backpressure reaches the sender (where Zenoh's congestion control acts: BLOCK_FIRST for scans);
 * during an outage nothing departs: data waits until the link is back.
 
 A small SO_RCVBUF/SO_SNDBUF on the proxy's sockets keeps the kernel from hiding megabytes of

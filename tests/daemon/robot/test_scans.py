@@ -10,23 +10,21 @@ import numpy as np
 import pytest
 
 from tests.helpers import connect_to, listen_on, running_edge
-from zoffload.robot.scans import RobotDaemon
+from zoffload.robot.scans import ScanStreamer, scan_streamer
+from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import EdgeSettings, RobotSettings
+from zoffload.runtime.lifecycle import StopSignal
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.simulated import SimulatedSource
 
 pytest.importorskip("kiss_icp")
 
 
-def run_robot(settings: RobotSettings, source: object | None = None) -> RobotDaemon:
-    robot = RobotDaemon(settings, source=source)  # type: ignore[arg-type]
-    robot.start()
-    try:
-        robot.run()
-        if settings.out_dir:
-            robot.write_results(Path(settings.out_dir))
-    finally:
-        robot.shutdown()
+def run_robot(settings: RobotSettings, source: object | None = None) -> ScanStreamer:
+    """The robot server with its scan pipeline only, run to the end of the source."""
+    stop = StopSignal()
+    robot = scan_streamer(settings, stop, source=source)  # type: ignore[arg-type]
+    RobotServer(settings, [robot], stop).run()
     return robot
 
 
@@ -88,7 +86,7 @@ def test_non_finite_points_are_dropped_and_counted(free_port: int) -> None:
 
 def test_robot_runs_an_onnx_scale_policy_against_the_edge(free_port: int, tmp_path: Path) -> None:
     pytest.importorskip("onnx")
-    from tests.core.test_policy_runtime import threshold_model
+    from tests.core.policy.test_onnx_scale import threshold_model
 
     model = threshold_model(tmp_path / "policy.onnx")  # finer when T < 0.1 s, coarser above
     with running_edge(EdgeSettings(zenoh=listen_on(free_port))):
@@ -106,7 +104,8 @@ def test_coded_scans_are_decoded_and_registered_on_the_edge(free_port: int, tmp_
     with running_edge(EdgeSettings(zenoh=listen_on(free_port))) as edge:
         robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=20, rate_hz=20,
                                         scan_coding="q16z", out_dir=str(tmp_path)))
-        registered = edge.robots["robot1"].counters["registered"]
+        assert edge.mapping is not None
+        registered = edge.mapping.robots["robot1"].counters["registered"]
     m = robot.metrics()
     assert m["balanced"] and m["balance"]["acked"] >= 15 and registered >= m["balance"]["acked"], m["balance"]
     rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))

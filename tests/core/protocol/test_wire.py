@@ -1,9 +1,12 @@
+"""The wire codec: round trips, and every malformed input a WireError."""
+
 from __future__ import annotations
 
 import msgpack
 import numpy as np
 import pytest
 
+from zoffload.edge.detection import decode_image
 from zoffload.protocol import wire
 
 
@@ -89,3 +92,16 @@ def test_expect_rejects_other_message_types() -> None:
 def test_encode_checks_arrays() -> None:
     with pytest.raises(wire.WireError, match="dtype"):
         wire.encode(scan(points=np.zeros((3, 3), np.float64)))
+
+
+def test_frame_and_detections_messages_round_trip() -> None:
+    img = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)
+    f = wire.Frame(robot="r", seq=3, send_stamp=1.0, capture_stamp=0.9, encoding="bgr8", width=6, height=4,
+                   data=img.reshape(-1))
+    back = wire.decode(wire.encode(f), expect=wire.Frame)
+    assert isinstance(back, wire.Frame)
+    np.testing.assert_array_equal(decode_image(back), img)
+    d = wire.Detections(robot="r", seq=3, send_stamp=1.0, edge="e", model="m", status="ok",
+                           infer_time=0.01, queue_time=0.0, batch=1, boxes=np.ones((2, 4), np.float32),
+                           scores=np.ones(2, np.float32), classes=np.zeros(2, np.int32))
+    assert wire.decode(wire.encode(d), expect=wire.Detections).classes.tolist() == [0, 0]

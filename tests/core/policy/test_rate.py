@@ -111,4 +111,3 @@ def test_late_share_the_budget_settles_at_on_a_jittery_link() -> None:
     assert late_share[0.007, 10**9] == pytest.approx(0.03, abs=0.01)
     # the fast probe after a quiet spell (the default) adds a little: still under 5 %
     assert late_share[0.007, 10**9] < late_share[0.007, 50] < 0.05
-

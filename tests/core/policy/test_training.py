@@ -8,11 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.core.test_policy_mdp import recordings
+from tests.core.policy.test_mdp import recordings
 from zoffload.policy.env import LinkModel, Retention, ScaleEnv
 from zoffload.policy.mdp import DECREASE, INCREASE, ScaleMDP
 
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+
 pytest.importorskip("onnxscript", reason="ONNX export needs onnxscript (train extra)")
 
 

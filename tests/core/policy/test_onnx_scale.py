@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from onnx import TensorProto, helper  # noqa: E402
 
 from zoffload.policy.mdp import ScaleMDP
 from zoffload.policy.onnx_scale import OnnxScalePolicy, load_scale_policy
 from zoffload.policy.scale import FixedScale
 
 onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper  # noqa: E402
 
 
 def threshold_model(path: Path, names: tuple[str, str] = ("state", "q")) -> Path:

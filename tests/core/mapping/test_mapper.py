@@ -1,3 +1,5 @@
+"""The KISS-ICP mapper on simulated scans."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -5,7 +7,7 @@ import pytest
 
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
-from zoffload.mapping.voxel import VoxelSet, voxel_downsample
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.sources.simulated import SimulatedSource
 
 pytest.importorskip("kiss_icp")
@@ -35,44 +37,6 @@ def test_kiss_icp_tracks_the_simulated_warehouse() -> None:
     assert err.ate_rmse < 0.3, err
     assert counts[-1] > counts[0] and all(b >= a for a, b in zip(counts, counts[1:], strict=False))
     assert len(m.map_cloud()) == m.map_points
-
-
-def test_voxel_set_counts_distinct_voxels_and_grows() -> None:
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-20, 20, size=(50_000, 3))
-    vs = VoxelSet(0.5, capacity=8)  # forces several rehashes
-    new1 = vs.add(pts[:25_000])
-    new2 = vs.add(pts[25_000:])
-    assert new1 + new2 == len(vs) == len(voxel_downsample(pts, 0.5))
-    assert vs.add(pts) == 0  # nothing new
-    keys = np.floor(vs.points() / 0.5)
-    assert len(np.unique(keys, axis=0)) == len(vs)
-
-
-def test_voxel_set_transforms_by_pose() -> None:
-    rng = np.random.default_rng(2)
-    pts = rng.uniform(-10, 10, size=(5000, 3))
-    c, sn = np.cos(0.7), np.sin(0.7)
-    pose = np.array([[c, -sn, 0, 3.0], [sn, c, 0, -1.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
-    a, b = VoxelSet(0.3), VoxelSet(0.3)
-    a.add(pts, pose)
-    b.add(pts @ pose[:3, :3].T + pose[:3, 3])
-    assert len(a) == len(b)
-    np.testing.assert_allclose(a.points(), b.points(), atol=1e-9)
-    with pytest.raises(ValueError, match="4x4"):
-        a.add(pts, np.eye(3))
-
-
-def test_se3_power() -> None:
-    from zoffload.mapping.se3 import se3_power
-
-    c, s = np.cos(0.05), np.sin(0.05)
-    step = np.array([[c, -s, 0, 0.12], [s, c, 0, 0.01], [0, 0, 1, 0], [0, 0, 0, 1]])
-    np.testing.assert_allclose(se3_power(step, 3), step @ step @ step, atol=1e-12)
-    np.testing.assert_allclose(se3_power(step, 1), step, atol=1e-12)
-    root = se3_power(step @ step @ step @ step, 0.25)
-    np.testing.assert_allclose(root[:3, :3], step[:3, :3], atol=1e-9)
-    np.testing.assert_allclose(root[:3, 3], step[:3, 3], atol=1e-9)
 
 
 def test_lost_scans_do_not_derail_the_mapper() -> None:

@@ -1,3 +1,5 @@
+"""The voxel grid against a straightforward reference, and the global-map voxel set."""
+
 from __future__ import annotations
 
 import math
@@ -6,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zoffload.mapping.voxel import voxel_downsample, voxel_downsample_counts
+from zoffload.mapping.voxel import VoxelSet, voxel_downsample, voxel_downsample_counts
 from zoffload.sources.kitti import read_kitti_bin
 
 
@@ -79,3 +81,29 @@ def test_empty_and_bad_input() -> None:
         voxel_downsample(np.zeros((3, 2)), 0.1)
     with pytest.raises(ValueError, match="too far"):
         voxel_downsample(np.array([[1e6, 0.0, 0.0]]), 0.01)
+
+
+def test_voxel_set_counts_distinct_voxels_and_grows() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-20, 20, size=(50_000, 3))
+    vs = VoxelSet(0.5, capacity=8)  # forces several rehashes
+    new1 = vs.add(pts[:25_000])
+    new2 = vs.add(pts[25_000:])
+    assert new1 + new2 == len(vs) == len(voxel_downsample(pts, 0.5))
+    assert vs.add(pts) == 0  # nothing new
+    keys = np.floor(vs.points() / 0.5)
+    assert len(np.unique(keys, axis=0)) == len(vs)
+
+
+def test_voxel_set_transforms_by_pose() -> None:
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-10, 10, size=(5000, 3))
+    c, sn = np.cos(0.7), np.sin(0.7)
+    pose = np.array([[c, -sn, 0, 3.0], [sn, c, 0, -1.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    a, b = VoxelSet(0.3), VoxelSet(0.3)
+    a.add(pts, pose)
+    b.add(pts @ pose[:3, :3].T + pose[:3, 3])
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a.points(), b.points(), atol=1e-9)
+    with pytest.raises(ValueError, match="4x4"):
+        a.add(pts, np.eye(3))

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from zoffload.policy.dqn import DQNConfig, export_onnx, greedy_actions, save_curves, train, write_metrics
+from zoffload.lab.eval.plots import plot_training_curves
+from zoffload.policy.dqn import DQNConfig, export_onnx, greedy_actions, train, write_metrics
 from zoffload.policy.env import LinkModel, Retention, ScaleEnv, read_records
 from zoffload.policy.mdp import ScaleMDP
 
@@ -63,7 +64,7 @@ def run_training(
         for v in (voxel_range[0], voxel_range[1]):
             fixed_env = ScaleEnv(ScaleMDP(v_min=v, v_max=v, v0=v), retention, link, seed=cfg.seed + 1)
             evaluation[key][f"fixed_{v:g}"] = rollout(fixed_env, lambda s: 1, level)
-    save_curves(out / "training_curves.png", result)
+    plot_training_curves(out / "training_curves.png", result)
     metrics = write_metrics(out / "training_metrics.json", cfg, result, {
         "command": " ".join(sys.argv), "data": [str(d) for d in data], "records": len(records),
         "voxel_range": list(voxel_range),

@@ -57,7 +57,7 @@ def test_coded_scan_travels_on_the_wire_and_decodes() -> None:
     plain = wire.Scan(robot="r", seq=1, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.07,
                       max_range=100.0, n_raw=len(pts), points=pts)
     assert b"packed" not in wire.encode(plain)
-    np.testing.assert_array_equal(wire.decode(wire.encode(plain), expect=wire.Scan).cloud(), pts)  # type: ignore
+    np.testing.assert_array_equal(wire.decode(wire.encode(plain), expect=wire.Scan).cloud(), pts)
     broken = wire.Scan(robot="r", seq=1, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.07,
                        max_range=100.0, n_raw=1, points=np.zeros((0, 3), np.float32), coding="q16z",
                        quant_step=0.005, n_points=10, origin=origin, packed=np.frombuffer(b"xx", np.uint8))

@@ -1,5 +1,4 @@
-"""Detectors: decoders on hand-built head outputs, NMS, AP, model resolution, and the real models'
-person AP50 on the COCO dev images."""
+"""Detector decoders, NMS, model resolution, and the real models' AP."""
 
 from __future__ import annotations
 
@@ -11,7 +10,6 @@ import pytest
 from zoffload.detect import models
 from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms
 from zoffload.detect.models import ModelError, resolve
-from zoffload.lab.eval.ap import average_precision, iou_matrix
 from zoffload.lab.eval.detection import person_ap50
 
 
@@ -57,23 +55,6 @@ def test_nms_is_class_aware_and_filters_by_confidence() -> None:
     assert det.scores.tolist() == pytest.approx([0.9, 0.7])
     assert det.classes.tolist() == [0, 1]
     assert len(nms(boxes, scores, classes, max_det=1)) == 1
-
-
-def test_ap_of_perfect_missing_and_ranked_detections() -> None:
-    gt = [np.array([[0, 0, 10, 10]], np.float32), np.array([[20, 20, 30, 30]], np.float32)]
-    perfect = [(g.copy(), np.array([0.9], np.float32)) for g in gt]
-    assert average_precision(perfect, gt) == pytest.approx(1.0)
-    none = [(np.zeros((0, 4), np.float32), np.zeros(0, np.float32))] * 2
-    assert average_precision(none, gt) == 0.0
-    # frame 0: a false positive scored above the true positive; frame 1 missed entirely
-    fp_first = [(np.array([[50, 50, 60, 60], [0, 0, 10, 10]], np.float32), np.array([0.9, 0.8], np.float32)),
-                none[0]]
-    # precision envelope: 0.5 up to recall 0.5, nothing beyond -> 51 of 101 points at 0.5
-    assert average_precision(fp_first, gt) == pytest.approx(51 * 0.5 / 101)
-    # a duplicate of a matched box is a false positive
-    dup = [(np.array([[0, 0, 10, 10], [0, 0, 10, 10]], np.float32), np.array([0.9, 0.8], np.float32))]
-    assert average_precision(dup, gt[:1]) == pytest.approx(1.0)  # the duplicate ranks after recall 1
-    assert iou_matrix(gt[0], gt[1])[0, 0] == 0.0
 
 
 def test_missing_model_names_where_it_looked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

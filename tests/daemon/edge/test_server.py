@@ -1,19 +1,22 @@
-"""The edge daemon in-process, driven through a real Zenoh session on a loopback port."""
+"""The edge server in-process with its real services, driven through Zenoh on a loopback port."""
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 
+from tests.daemon.edge.acks import Acks
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
+from zoffload.edge.mapping import MappingService
+from zoffload.edge.server import EdgeServer
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
-from zoffload.runtime.config import EdgeSettings, MapperSettings
+from zoffload.runtime.config import DetectorSettings, EdgeSettings, MapperSettings
 from zoffload.sources.simulated import SimulatedSource
 
 pytest.importorskip("kiss_icp")
@@ -28,15 +31,9 @@ def scan_msg(robot: str, seq: int, index: int | None = None, stamp: float | None
                                  max_range=SRC.max_range, n_raw=len(f.points), points=pts))
 
 
-class Acks:
-    def __init__(self, session: Any, robot: str) -> None:
-        self.items: list[wire.ScanAck] = []
-        self.sub = session.declare_subscriber(KEYS.scan_ack(robot), self._on)
-
-    def _on(self, sample: Any) -> None:
-        msg = wire.decode(sample.payload.to_bytes(), expect=wire.ScanAck)
-        assert isinstance(msg, wire.ScanAck)
-        self.items.append(msg)
+def mapping(edge: EdgeServer) -> MappingService:
+    assert edge.mapping is not None
+    return edge.mapping
 
 
 def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None:
@@ -47,7 +44,7 @@ def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None
         pub = s.declare_publisher(KEYS.scan("r1"))
         for seq in range(20):
             pub.put(scan_msg("r1", seq))
-            wait_for(lambda seq=seq: len(acks.items) > seq, what=f"ack {seq}")  # paced like a sensor
+            acks.wait(seq + 1)  # paced like a sensor
         ok = [a for a in acks.items if a.status == "ok"]
         assert [a.seq for a in ok] == list(range(20))
         assert np.isnan(ok[0].interarrival) and all(a.interarrival > 0 for a in ok[1:])
@@ -62,9 +59,10 @@ def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None
         assert m.scans == 20 and list(m.seqs) == list(range(20)) and len(m.points) == ok[-1].map_points
         unknown = list(s.get(KEYS.map("nobody"), timeout=5))
         assert unknown[0].err is not None and b"no map" in unknown[0].err.payload.to_bytes()
-        assert edge.counters["registered"] == 20
+        assert mapping(edge).counters["registered"] == 20
     assert (tmp_path / "r1_map.ply").stat().st_size > 1000
     assert (tmp_path / "r1_trajectory.npz").exists()
+    assert json.loads((tmp_path / "r1_edge.json").read_text())["registered"] == 20
 
 
 def test_malformed_messages_are_counted_and_the_edge_stays_up(free_port: int) -> None:
@@ -74,7 +72,7 @@ def test_malformed_messages_are_counted_and_the_edge_stays_up(free_port: int) ->
         s.put(KEYS.scan("r1"), b"\x00garbage")
         s.put(KEYS.scan("r1"), wire.encode(wire.Pong(edge="x", stamp=0.0)))  # wrong type
         s.put(KEYS.scan("r2"), scan_msg("r1", 0))  # key and payload disagree
-        wait_for(lambda: edge.counters["malformed"] == 3, what="3 malformed counted")
+        wait_for(lambda: mapping(edge).counters["malformed"] == 3, what="3 malformed counted")
         # an empty scan is a registration error, acked as such
         empty = wire.encode(wire.Scan(robot="r1", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
                                       voxel_max=0.07, max_range=40.0, n_raw=0,
@@ -94,9 +92,11 @@ def test_several_robots_get_their_own_mapper(free_port: int) -> None:
         for seq in range(6):
             s.put(KEYS.scan("ra"), scan_msg("ra", seq))
             s.put(KEYS.scan("rb"), scan_msg("rb", seq, index=300 + seq))  # elsewhere in the warehouse
-            wait_for(lambda seq=seq: len(a.items) > seq and len(b.items) > seq, what="acks of both")
-        assert set(edge.robots) == {"ra", "rb"}
-        assert edge.robots["ra"].mapper is not edge.robots["rb"].mapper
+            a.wait(seq + 1)
+            b.wait(seq + 1)
+        robots = mapping(edge).robots
+        assert set(robots) == {"ra", "rb"}
+        assert robots["ra"].mapper is not robots["rb"].mapper
         assert all(x.robot == "ra" for x in a.items) and all(x.robot == "rb" for x in b.items)
 
 
@@ -110,13 +110,73 @@ def test_overload_drops_oldest_and_says_so(free_port: int) -> None:
         pub = s.declare_publisher(KEYS.scan("r1"), congestion_control=zenoh.CongestionControl.BLOCK)
         for payload in burst:  # far faster than registration
             pub.put(payload)
-        wait_for(lambda: edge.counters["received"] == 30, what="all 30 scans received")
+        wait_for(lambda: mapping(edge).counters["received"] == 30, what="all 30 scans received")
         try:
             wait_for(lambda: len(acks.items) == 30, timeout=30, what="an ack for every scan")
         except AssertionError as exc:
             got = sorted(a.seq for a in acks.items)
-            raise AssertionError(f"acks {got} counters {dict(edge.counters)}") from exc
+            raise AssertionError(f"acks {got} counters {dict(mapping(edge).counters)}") from exc
         dropped = [x for x in acks.items if x.status == "dropped"]
         assert dropped and all("overloaded" in x.detail for x in dropped)
-        assert edge.counters["dropped"] == len(dropped)
-        assert edge.counters["registered"] + len(dropped) == 30
+        assert mapping(edge).counters["dropped"] == len(dropped)
+        assert mapping(edge).counters["registered"] + len(dropped) == 30
+
+
+def test_status_merges_the_values_of_every_service(free_port: int) -> None:
+    settings = EdgeSettings(zenoh=listen_on(free_port), status_period=0.1,
+                            mapper=MapperSettings(enabled=False), detector=DetectorSettings(enabled=False))
+    with running_edge(settings) as edge, client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("edge1"))
+        statuses: list[wire.Status] = []
+
+        def on_status(sample: zenoh.Sample) -> None:
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+            assert isinstance(msg, wire.Status)
+            statuses.append(msg)
+
+        sub = s.declare_subscriber(KEYS.edge_status("edge1"), on_status)
+        acks = Acks(s, "r1")
+        s.put(KEYS.scan("r1"), scan_msg("r1", 0))
+        wait_for(lambda: acks.seqs("ok") == [0], what="the scan acked")
+        assert acks.items[0].detail == "mapping disabled"
+        wait_for(lambda: any(st.values.get("received") == 1 for st in statuses), what="status")
+        sub.undeclare()
+        last = statuses[-1]
+        assert last.source == "edge" and last.id == "edge1"
+        assert last.values["received"] == 1 and last.values["robots"] == 1
+        assert last.values["r1.queue"] == 0 and last.values["r1.map_points"] == 0
+        assert [x.name for x in edge.services] == ["mapping"]  # no detector: it was switched off
+
+
+class Probe:
+    """A stand-in service that records when it is stopped, and can fail to stop."""
+
+    def __init__(self, name: str, log: list[str], fail: bool = False) -> None:
+        self.name = name
+        self.log = log
+        self.fail = fail
+
+    def start(self, session: zenoh.Session) -> None:
+        self.log.append(f"start {self.name}")
+
+    def status(self) -> dict[str, float]:
+        return {f"{self.name}.up": 1.0}
+
+    def stop(self) -> None:
+        self.log.append(f"stop {self.name}")
+        if self.fail:
+            raise RuntimeError(f"{self.name} stuck")
+
+
+def test_shutdown_stops_services_in_reverse_and_closes_the_session_when_one_fails(free_port: int) -> None:
+    settings = EdgeSettings(zenoh=listen_on(free_port), mapper=MapperSettings(enabled=False),
+                            detector=DetectorSettings(enabled=False))
+    server = EdgeServer(settings)
+    server.startup()
+    log: list[str] = []
+    server.services += [Probe("a", log, fail=True), Probe("b", log)]
+    assert {"a.up", "b.up", "robots"} <= set(server.status().values)
+    with pytest.raises(RuntimeError, match="a stuck"):
+        server.shutdown()
+    assert log == ["stop b", "stop a"] and server.services == [] and server.session is None
+    assert server.stop.is_set()

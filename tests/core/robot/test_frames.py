@@ -1,0 +1,146 @@
+"""The camera pipeline's bookkeeping and fallback state machine, driven by hand: no threads, no
+clock, no Zenoh, no model files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from zoffload.policy.offload import EDGE, HOLD, LOCAL, DeliveryAwareDynamic, EdgeOnly, FixedRatio, RobotOnly
+from zoffload.robot.frames import DONE, DROPPED, FallbackRules, FrameBook
+
+RULES = FallbackRules(reply_timeout=0.5, fallback_losses=3, probe_period=0.5, resume_after=3)
+NONE = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+ONE = (np.array([[1, 2, 3, 4]], np.float32), np.array([0.9], np.float32))
+
+
+def book(strategy=None) -> FrameBook:
+    b = FrameBook(strategy or EdgeOnly(), RULES)
+    b.edges_changed(True, 0.0)
+    return b
+
+
+def test_every_frame_ends_in_exactly_one_bucket() -> None:
+    b = book(FixedRatio(ratio=0.5))
+    t = 0.0
+    sides = []
+    for seq in range(8):
+        t += 0.04
+        side, probe = b.decide(seq, seq, capture=t, now=t)
+        assert not probe
+        sides.append(side)
+        if side == EDGE:
+            b.sent(seq, t, probe)
+    assert sides.count(EDGE) == 4 and sides.count(LOCAL) == 4  # algorithm 1 alternates
+    edge = [s for s, side in zip(range(8), sides, strict=True) if side == EDGE]
+    local = [s for s, side in zip(range(8), sides, strict=True) if side == LOCAL]
+    assert b.edge_result(edge[0], "ok", t + 0.1, 0.05, 0.01, *ONE) == "edge_done"
+    assert b.edge_result(edge[1], "dropped", t + 0.1, float("nan"), float("nan"), *NONE) == "edge_dropped"
+    b.send_replaced(edge[2])  # a newer frame took the sender's slot
+    b.local_result(local[0], t + 0.1, service=0.02, infer_time=0.02, boxes=ONE[0], scores=ONE[1])
+    b.local_replaced(local[1])  # a newer frame took the local detector's slot
+    b.failed(local[2])  # undecodable
+    assert b.edge_result(99, "ok", t, 0.0, 0.0, *NONE) == "unknown"  # never sent: counted, no bucket
+    bal = b.balance()
+    assert bal["pending"] == 2 and b.balanced()  # edge[3] in flight, local[3] still detecting
+    lost = b.expire(t + 1.0)
+    assert lost == [edge[3]] and b.records[edge[3]]["status"] == "edge_lost"
+    b.close(t + 1.0, send_waiting=None, local_waiting=local[3])
+    bal = b.balance()
+    assert bal["pending"] == 0 and b.balanced()
+    assert bal["frames_in"] == 8 == sum(bal[k] for k in (*DONE, *DROPPED))
+    assert b.counters["late_or_unknown_results"] == 1
+    assert b.records[edge[0]]["n_persons"] == 1 and b.persons[local[0]][1][0] == pytest.approx(0.9)
+    # a result after its frame was booked lost is late: counted, the bucket stays
+    assert b.edge_result(edge[3], "ok", t + 1.1, 0.05, 0.0, *NONE) == "unknown"
+    assert b.records[edge[3]]["status"] == "edge_lost" and b.balanced()
+
+
+def test_edge_liveliness_loss_books_in_flight_lost_and_falls_back_then_probes_resume() -> None:
+    b = book()
+    for seq in range(3):
+        side, _ = b.decide(seq, seq, capture=0.1 * seq, now=0.1 * seq)
+        b.sent(seq, 0.1 * seq, False)
+    b.edges_changed(False, 0.25)
+    assert b.fallback and len(b.fallback_events) == 1
+    assert all(b.records[s]["status"] == "edge_lost" for s in range(3)) and not b.in_flight
+    # no edge: every frame local, no probe
+    side, probe = b.decide(3, 3, capture=0.3, now=0.3)
+    assert (side, probe) == (LOCAL, False)
+    # the edge is back: one probe per probe_period, and only with nothing in flight
+    b.edges_changed(True, 1.0)
+    seq, now, resumed_at = 4, 1.0, None
+    probes = []
+    while now < 5.0 and resumed_at is None:
+        side, probe = b.decide(seq, seq, capture=now, now=now)
+        if probe:
+            probes.append(now)
+            assert side == EDGE
+            b.sent(seq, now, True)
+            b.edge_result(seq, "ok", now + 0.1, 0.05, 0.0, *NONE)  # a prompt answer
+            if not b.fallback:
+                resumed_at = now
+        else:
+            assert side == LOCAL  # in fallback everything else stays local
+        seq += 1
+        now += 0.04
+    assert resumed_at is not None and len(probes) == RULES.resume_after
+    assert all(b2 - a >= RULES.probe_period - 1e-9 for a, b2 in zip(probes, probes[1:], strict=False))
+    assert b.fallback_events[0]["end"] == pytest.approx(resumed_at + 0.1)
+    side, probe = b.decide(seq, seq, capture=now, now=now)
+    assert (side, probe) == (EDGE, False)  # offloading again
+
+
+def test_a_slow_probe_answer_does_not_count_towards_resuming() -> None:
+    b = book()
+    b.edges_changed(False, 0.0)
+    b.edges_changed(True, 0.0)
+    now = 1.0
+    for i in range(6):
+        side, probe = b.decide(i, i, capture=now, now=now)
+        assert probe
+        b.sent(i, now, True)
+        late = i == 2  # the third answer is slower than the reply timeout
+        b.edge_result(i, "ok", now + (0.7 if late else 0.1), 0.05, 0.0, *NONE)
+        now += 1.0
+        if i < 4:
+            assert b.fallback, i  # streak 1, 2, reset by the slow one, 1, 2
+    assert not b.fallback  # 3 prompt answers after the slow one
+
+
+def test_losses_in_a_row_from_a_silent_edge_mean_fallback_one_loss_does_not() -> None:
+    b = book()
+    # one frame lost while the edge answers others: the link's loss, not a dead edge
+    for seq in range(3):
+        b.decide(seq, seq, capture=0.0, now=0.0)
+        b.sent(seq, 0.0, False)
+    b.edge_result(1, "ok", 0.2, 0.05, 0.0, *NONE)
+    b.edge_result(2, "ok", 0.2, 0.05, 0.0, *NONE)
+    assert b.expire(0.6) == [0] and not b.fallback
+    # three in a row unanswered and nothing heard for a whole timeout: the edge is gone
+    for seq in range(3, 6):
+        b.decide(seq, seq, capture=1.0, now=1.0)
+        b.sent(seq, 1.0, False)
+    assert b.expire(1.4) == [] and not b.fallback
+    assert b.expire(1.6) == [3, 4, 5] and b.fallback
+    assert b.counters["fallbacks"] == 1 and b.balanced()
+
+
+def test_robot_only_never_probes_and_held_frames_are_dropped_window() -> None:
+    b = book(RobotOnly())
+    b.edges_changed(False, 0.0)
+    b.edges_changed(True, 0.0)
+    for i in range(30):
+        side, probe = b.decide(i, i, capture=i * 0.1, now=i * 0.1)
+        assert side == LOCAL and not probe
+    # our rule holds frames back when its window is full and local is slower
+    d = DeliveryAwareDynamic(max_in_flight=2)
+    b = book(d)
+    d.on_local_result(0.3, service=0.3)
+    d.on_edge_result(0.1)
+    for seq in range(2):
+        side, _ = b.decide(seq, seq, capture=0.0, now=0.0)
+        assert side == EDGE
+        b.sent(seq, 0.0, False)
+    side, _ = b.decide(2, 2, capture=0.01, now=0.01)
+    assert side == HOLD and b.records[2]["status"] == "dropped_window" and b.balanced()

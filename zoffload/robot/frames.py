@@ -1,0 +1,218 @@
+"""Camera-frame bookkeeping and the fallback state machine of the robot's camera pipeline.
+
+Pure: no threads, no clocks, no Zenoh. Every method takes ``now`` (robot wall clock, seconds) and
+the caller serialises the calls (robot/camera.py holds one lock around them), so the logic is
+tested directly (tests/core/robot/test_frames.py).
+
+Every frame the camera produced ends in exactly one bucket::
+
+    frames_in = local_done + edge_done + dropped_* + edge_lost + edge_dropped + edge_error + error
+                + pending
+
+Fallback: when the last edge's liveliness token goes, frames in flight are booked lost at once and
+every frame is detected locally. An edge frame unanswered for ``reply_timeout`` is lost; it puts
+the robot in fallback too when ``fallback_losses`` frames in a row went unanswered and nothing came
+back for a whole timeout (a frame lost now and then is the link's loss: counted, and seen by the
+strategy). In fallback one probe frame goes to the edge every ``probe_period`` while an edge is
+present; ``resume_after`` prompt answers in a row end the fallback (hysteresis).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from zoffload.policy.offload import EDGE, HOLD, OffloadState, Strategy
+
+log = logging.getLogger("zoffload.robot.frames")
+
+FRAME_FIELDS = ["seq", "index", "capture", "side", "probe", "send", "result", "status", "rtt_ms",
+                "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons"]
+# Final buckets of a camera frame
+DONE = ("local_done", "edge_done")
+DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "dropped_send", "edge_lost", "edge_dropped",
+           "edge_error", "error")
+
+
+@dataclass(frozen=True)
+class FallbackRules:
+    reply_timeout: float = 0.5  # an edge frame unanswered this long is lost
+    fallback_losses: int = 3  # lost in a row (and a silent edge) → fallback
+    probe_period: float = 0.5  # in fallback: one frame to the edge this often
+    resume_after: int = 3  # prompt probe answers in a row that end the fallback
+
+
+class FrameBook:
+    def __init__(self, strategy: Strategy, rules: FallbackRules) -> None:
+        self.strategy = strategy
+        self.rules = rules
+        self.counters: Counter[str] = Counter()
+        self.records: dict[int, dict[str, Any]] = {}
+        self.persons: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # person boxes and scores
+        self.in_flight: dict[int, float] = {}  # seq -> send time
+        self.fallback = False
+        self.fallback_events: list[dict[str, float]] = []
+        self.edge_present = False
+        self._probe_streak = 0
+        self._last_probe = -float("inf")
+        self._last_reply = -float("inf")
+        self._lost_streak = 0
+
+    # Frames in, decisions out
+    def camera_dropped(self, n: int) -> None:
+        """Frames the camera replaced before the loop took them."""
+        self.counters["frames_in"] += n
+        self.counters["dropped_camera"] += n
+
+    def decide(self, seq: int, index: int, capture: float, now: float, cpu_percent: float = float("nan"),
+               mbps_out: float = float("nan"), local_busy: bool = False) -> tuple[str, bool]:
+        """Book a new frame and choose its side (``local``, ``edge`` or ``hold``); the second value
+        says whether it is a fallback probe. A held frame is finished here (``dropped_window``)."""
+        self.records[seq] = {"seq": seq, "index": index, "capture": capture, "status": "pending"}
+        self.counters["frames_in"] += 1
+        probe = (self.fallback and self.edge_present and not self.in_flight
+                 and now - self._last_probe >= self.rules.probe_period and self.strategy.name != "robot")
+        if probe:
+            self._last_probe = now
+            side = EDGE
+        else:
+            oldest = min(self.in_flight.values(), default=now)
+            side = self.strategy.decide(OffloadState(
+                now=now, edge_available=self.edge_present and not self.fallback, cpu_percent=cpu_percent,
+                mbps_out=mbps_out, oldest_in_flight_age=now - oldest, in_flight=len(self.in_flight),
+                local_busy=local_busy))
+        self.records[seq]["side"] = side
+        if side == HOLD:  # the edge's window is full and local is slower: skip this one
+            self.finish(seq, "dropped_window")
+        return side, probe
+
+    def sent(self, seq: int, now: float, probe: bool) -> None:
+        """The frame is handed to the sender: in flight (its timeout runs) from now on."""
+        self.records[seq].update(send=now, probe=int(probe))
+        self.in_flight[seq] = now
+
+    def send_replaced(self, seq: int) -> None:
+        """A frame still waiting for the link when a newer one took its place."""
+        self.in_flight.pop(seq, None)
+        self.finish(seq, "dropped_send")
+
+    def local_replaced(self, seq: int) -> None:
+        """A frame still waiting for the local detector when a newer one took its place."""
+        self.finish(seq, "dropped_stale")
+
+    def failed(self, seq: int) -> None:
+        """The frame could not be encoded or detected (a bad frame is counted, the run goes on)."""
+        self.in_flight.pop(seq, None)
+        self.finish(seq, "error")
+
+    def finish(self, seq: int, bucket: str) -> None:
+        self.records[seq]["status"] = bucket
+        self.counters[bucket] += 1
+
+    # Results
+    def local_result(self, seq: int, now: float, service: float, infer_time: float,
+                     boxes: np.ndarray, scores: np.ndarray) -> None:
+        rec = self.records[seq]
+        rec.update(result=now, rtt_ms=(now - rec["capture"]) * 1e3, local_infer_ms=infer_time * 1e3,
+                   n_persons=len(scores))
+        self.persons[seq] = (boxes, scores)
+        self.finish(seq, "local_done")
+        self.strategy.on_local_result(now - rec["capture"], service=service)
+
+    def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
+                    boxes: np.ndarray, scores: np.ndarray) -> str:
+        """Book the edge's answer; returns its bucket, or ``unknown`` for a frame not in flight
+        (late after its timeout, or never sent)."""
+        self._last_reply = now
+        self._lost_streak = 0
+        sent = self.in_flight.pop(seq, None)
+        rec = self.records.get(seq)
+        if sent is None or rec is None:
+            self.counters["late_or_unknown_results"] += 1
+            return "unknown"
+        rec.update(result=now, edge_infer_ms=infer_time * 1e3, edge_queue_ms=queue_time * 1e3)
+        if status != "ok":
+            bucket = "edge_dropped" if status == "dropped" else "edge_error"
+            self.finish(seq, bucket)
+            self.strategy.on_edge_timeout(self.rules.reply_timeout)
+            return bucket
+        rtt = now - rec["capture"]
+        rec.update(rtt_ms=rtt * 1e3, n_persons=len(scores))
+        self.persons[seq] = (boxes, scores)
+        self.finish(seq, "edge_done")
+        self.strategy.on_edge_result(rtt)
+        if rec.get("probe"):
+            self._probe_answered(now - sent, now)
+        return "edge_done"
+
+    # Losses and fallback
+    def expire(self, now: float) -> list[int]:
+        """Book every edge frame unanswered for ``reply_timeout`` as lost; returns their seqs."""
+        overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.rules.reply_timeout]
+        for seq in overdue:
+            self._book_lost(seq, now)
+        self._lost_streak += len(overdue)
+        # A frame lost now and then is the link's loss (counted, and the strategy sees it); an edge
+        # that lets several frames in a row go unanswered, and answered nothing for a whole
+        # timeout, is gone
+        if (overdue and self._lost_streak >= self.rules.fallback_losses
+                and now - self._last_reply > self.rules.reply_timeout):
+            self._enter_fallback(now, f"{self._lost_streak} edge frames in a row unanswered")
+        return overdue
+
+    def edges_changed(self, present: bool, now: float) -> None:
+        """The edge-presence watcher's news: the last edge gone books everything in flight lost."""
+        self.edge_present = present
+        if not present:
+            for seq in list(self.in_flight):
+                self._book_lost(seq, now)
+            self._enter_fallback(now, "edge liveliness lost")
+
+    def _book_lost(self, seq: int, now: float) -> None:
+        self.in_flight.pop(seq, None)
+        self.finish(seq, "edge_lost")
+        rec = self.records[seq]
+        self.strategy.on_edge_timeout(now - rec["send"])
+        if rec.get("probe"):
+            self._probe_streak = 0
+
+    def _enter_fallback(self, now: float, why: str) -> None:
+        if not self.fallback:
+            self.fallback = True
+            self._probe_streak = 0
+            self.counters["fallbacks"] += 1
+            self.fallback_events.append({"start": now, "end": float("nan")})
+            log.warning("fallback to local detection: %s", why)
+
+    def _probe_answered(self, waited: float, now: float) -> None:
+        if not self.fallback:
+            return
+        self._probe_streak = self._probe_streak + 1 if waited <= self.rules.reply_timeout else 0
+        if self._probe_streak >= self.rules.resume_after:
+            self.fallback = False
+            self.fallback_events[-1]["end"] = now
+            log.info("edge answers again: offloading resumes")
+
+    # End of run and totals
+    def close(self, now: float, send_waiting: int | None, local_waiting: int | None) -> None:
+        """Book what is left: the frame waiting for the link, the frames in flight, the frame
+        waiting for the local detector."""
+        if send_waiting is not None:
+            self.send_replaced(send_waiting)
+        for seq in list(self.in_flight):
+            self._book_lost(seq, now)
+        if local_waiting is not None:
+            self.local_replaced(local_waiting)
+
+    def balance(self) -> dict[str, int]:
+        out = {k: int(self.counters[k]) for k in ("frames_in", *DONE, *DROPPED)}
+        out["pending"] = sum(1 for r in self.records.values() if r["status"] == "pending")
+        return out
+
+    def balanced(self) -> bool:
+        b = self.balance()
+        return b["frames_in"] == sum(b[k] for k in (*DONE, *DROPPED)) + b["pending"]

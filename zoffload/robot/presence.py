@@ -1,0 +1,81 @@
+"""Which edges are alive, from their liveliness tokens: one watcher for every pipeline of a robot.
+
+Each edge holds ``<ns>/alive/edge/<edge>`` while it runs. The watcher keeps the set of present
+edges and tells its listeners about every change, so a pipeline can react the moment the last
+edge goes (book frames in flight as lost, fall back to local work) and when one comes back.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from zoffload.protocol.keys import Keys
+
+log = logging.getLogger("zoffload.robot.presence")
+
+# (edge id, present now?, the edges present after this change)
+Listener = Callable[[str, bool, frozenset[str]], None]
+
+
+class EdgePresence:
+    def __init__(self, keys: Keys) -> None:
+        self.keys = keys
+        self._edges: set[str] = set()
+        self._listeners: list[Listener] = []
+        self._lock = threading.Lock()
+        self._seen = threading.Event()
+        self._sub: zenoh.Subscriber | None = None
+
+    def subscribe(self, listener: Listener) -> None:
+        """Call ``listener`` on every change (from a Zenoh callback thread: keep it short)."""
+        with self._lock:
+            self._listeners.append(listener)
+
+    def start(self, session: zenoh.Session) -> None:
+        # history=True: tokens declared before this subscriber count as present at once
+        self._sub = session.liveliness().declare_subscriber(
+            self.keys.any_edge_alive(), self._on_token, history=True)
+
+    def stop(self) -> None:
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception as exc:  # a session already closed
+                log.debug("presence subscriber not undeclared: %s", exc)
+            self._sub = None
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        edge = self.keys.last_chunk(str(sample.key_expr))
+        present = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            if present:
+                self._edges.add(edge)
+                self._seen.set()
+            else:
+                self._edges.discard(edge)
+            now = frozenset(self._edges)
+            listeners = list(self._listeners)
+        if present:
+            log.info("edge %s present", edge)
+        else:
+            log.warning("edge %s gone%s", edge, "" if now else ": no edge left")
+        for listener in listeners:
+            listener(edge, present, now)
+
+    @property
+    def edges(self) -> frozenset[str]:
+        with self._lock:
+            return frozenset(self._edges)
+
+    @property
+    def any(self) -> bool:
+        with self._lock:
+            return bool(self._edges)
+
+    def wait(self, timeout: float) -> bool:
+        """Block until an edge has been seen (now or before), at most ``timeout`` seconds."""
+        return self._seen.wait(timeout)
