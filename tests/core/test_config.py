@@ -13,10 +13,9 @@ from zoffload.runtime.config import (
     PerceptionSettings,
     RobotSettings,
     ZenohSettings,
-    load_settings,
-    write_effective,
 )
 from zoffload.runtime.errors import ConfigError, ZenohSessionError
+from zoffload.runtime.loading import load_settings, write_effective
 from zoffload.runtime.session import zenoh_config
 
 

@@ -10,8 +10,8 @@ from urllib.parse import urlparse
 
 import yaml
 
-from zoffload.cli.main import edge_parser, edge_settings, robot_parser, robot_settings
-from zoffload.runtime.config import load_settings
+from zoffload.cli.daemons import edge_parser, edge_settings, robot_parser, robot_settings
+from zoffload.runtime.loading import load_settings
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 COMPOSE = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())

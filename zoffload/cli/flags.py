@@ -25,7 +25,7 @@ from typing import Any, Literal, get_args, get_origin
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from zoffload.runtime.config import section_model, unwrap_optional
+from zoffload.runtime.loading import section_model, unwrap_optional
 
 _SCALARS = (int, float, str)
 _METAVARS = {int: "INT", float: "FLOAT", str: "TEXT"}

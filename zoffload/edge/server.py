@@ -28,8 +28,9 @@ from zoffload.edge.mapping import MapperRecipe, MappingService
 from zoffload.edge.service import EdgeService
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.runtime.config import EdgeSettings, ZenohSettings, write_effective
+from zoffload.runtime.config import EdgeSettings, ZenohSettings
 from zoffload.runtime.lifecycle import StopSignal
+from zoffload.runtime.loading import write_effective
 from zoffload.runtime.session import open_session
 
 log = logging.getLogger("zoffload.edge")

@@ -17,7 +17,8 @@ import zenoh
 
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings, write_effective
+from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
+from zoffload.runtime.loading import write_effective
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
 

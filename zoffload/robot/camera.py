@@ -32,7 +32,6 @@ import zenoh
 
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import EDGE, LOCAL, Strategy, make_strategy
-from zoffload.policy.smoothing import MovingAverage
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.robot.frames import FRAME_FIELDS, FallbackRules, FrameBook
@@ -40,8 +39,8 @@ from zoffload.robot.presence import EdgePresence
 from zoffload.robot.sensor import FrameSource, Reading, SensorThread
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.monitor import ByteRate, CpuMonitor, Pinger, RaplMonitor
-from zoffload.runtime.session import has_subscribers
+from zoffload.runtime.monitor import RaplMonitor, ResourceMonitor
+from zoffload.runtime.session import has_subscribers, undeclare
 from zoffload.sources.images import ImageFrame, open_image_source
 
 log = logging.getLogger("zoffload.robot.camera")
@@ -92,9 +91,7 @@ class CameraOffloader:
         self._send_cond = threading.Condition(self._lock)
         self._stopping = False
         self.bytes_sent = 0
-        self.cpu = MovingAverage(3)
-        self.mbps = MovingAverage(3)
-        self.samples: list[dict[str, float]] = []
+        self.monitor: ResourceMonitor | None = None
         self._threads: list[threading.Thread] = []
 
     # Startup
@@ -107,8 +104,10 @@ class CameraOffloader:
         self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id), self._on_result)
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
-        for target, name in ((self._local_worker, "local-detector"), (self._sender, "frame-sender"),
-                             (self._monitor, "monitor")):
+        ping = self.keys.ping(self.opts.robot_id)
+        self.monitor = ResourceMonitor(session, ping, lambda: float(self.bytes_sent),
+                                       ping_timeout=self.rules.reply_timeout).start()
+        for target, name in ((self._local_worker, "local-detector"), (self._sender, "frame-sender")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
@@ -123,12 +122,7 @@ class CameraOffloader:
 
     def close(self) -> None:
         self._stop_threads()
-        for entity in (getattr(self, "_det_sub", None), getattr(self, "_pub", None)):
-            if entity is not None:
-                try:
-                    entity.undeclare()
-                except Exception as exc:  # the session is closing
-                    log.debug("not undeclared: %s", exc)
+        undeclare(getattr(self, "_det_sub", None), getattr(self, "_pub", None))
 
     # Zenoh callback threads
     def _on_edges(self, edge: str, present: bool, edges: frozenset[str]) -> None:
@@ -237,7 +231,7 @@ class CameraOffloader:
     def dispatch(self, reading: Reading) -> None:
         with self._lock:
             side, probe = self.book.decide(reading.seq, reading.frame.index, reading.capture_stamp,
-                                           time.time(), self.cpu.value, self.mbps.value, self._local_busy)
+                                           time.time(), *self._smoothed(), self._local_busy)
             try:
                 if side == LOCAL:
                     self._to_local(reading)
@@ -286,35 +280,26 @@ class CameraOffloader:
 
     def _stop_threads(self) -> None:
         self._stopping = True
+        if self.monitor is not None:
+            self.monitor.stop()
         with self._lock:
             self._local_cond.notify_all()
             self._send_cond.notify_all()
 
-    def _monitor(self) -> None:
-        cpu, rapl = CpuMonitor(), RaplMonitor()
-        rate = ByteRate(lambda: float(self.bytes_sent))
-        # 1 Hz ping-pong over the edge's ping queryable: the network's share of the edge RTT
-        pinger = Pinger(self.session, self.keys.ping(self.opts.robot_id), period=1.0,
-                        timeout=self.rules.reply_timeout).start()
-        try:
-            while not self.stop.wait(1.0) and not self._stopping:
-                system, proc = cpu.sample()
-                mbps, watts = rate.sample(), rapl.sample()
-                with self._lock:
-                    self.cpu.add(proc)
-                    self.mbps.add(mbps)
-                    self.samples.append({"t": time.time(), "cpu_system": system, "cpu_process": proc,
-                                         "mbps_out": mbps, "power_w": watts, "ping_ms": pinger.rtt.value})
-        finally:
-            pinger.stop()
+    def _smoothed(self) -> tuple[float, float]:
+        return self.monitor.smoothed() if self.monitor else (float("nan"), float("nan"))
+
+    def _samples(self) -> list[dict[str, float]]:
+        return self.monitor.history() if self.monitor else []
 
     def status(self) -> dict[str, float]:
         """Frame counters and the latest monitor readings, for the robot's status message."""
         with self._lock:
             values = {k: float(v) for k, v in self.book.balance().items()}
             values.update(fallback=float(self.book.fallback), offloaded=float(self.strategy.offloaded))
-            if self.samples:
-                last = self.samples[-1]
+            samples = self._samples()
+            if samples:
+                last = samples[-1]
                 values.update({k: float(last[k]) for k in ("cpu_system", "cpu_process", "mbps_out",
                                                             "power_w", "ping_ms")})
         return values
@@ -322,43 +307,11 @@ class CameraOffloader:
     # Results
     def metrics(self) -> dict[str, Any]:
         with self._lock:
-            bal = self.book.balance()
-            balanced = self.book.balanced()
-            recs = list(self.book.records.values())
-            samples = list(self.samples)
-            counters = dict(self.book.counters)
-            fallbacks = list(self.book.fallback_events)
-        done = bal["local_done"] + bal["edge_done"]
-
-        def mean(xs: list[Any]) -> float | None:
-            xs = [x for x in xs if x is not None and math.isfinite(x)]
-            return float(np.mean(xs)) if xs else None
-
-        return {
-            "robot": self.opts.robot_id,
-            "source": self.source.name,
-            "strategy": self.strategy.name,
-            "local_model": self.local.name,
-            "encoding": self.opts.encoding,
-            "cpu_quota": self.opts.cpu_quota,
-            "cpu_quota_applied": self.opts.quota_mode,
-            "balance": bal,
-            "balanced": balanced,
-            "processed_pct": 100.0 * done / bal["frames_in"] if bal["frames_in"] else 0.0,
-            "offloaded_pct": 100.0 * self.strategy.offloaded / max(self.strategy.total, 1),
-            "robot_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "local_done"]),
-            "edge_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "edge_done"]),
-            "local_infer_ms": mean([r.get("local_infer_ms") for r in recs]),
-            "edge_infer_ms": mean([r.get("edge_infer_ms") for r in recs if r["status"] == "edge_done"]),
-            "cpu_process_pct": mean([s["cpu_process"] for s in samples]),
-            "cpu_system_pct": mean([s["cpu_system"] for s in samples]),
-            "mbps_out": mean([s["mbps_out"] for s in samples]),
-            "power_w": mean([s["power_w"] for s in samples]),
-            "power_available": RaplMonitor().available,
-            "ping_ms": mean([s.get("ping_ms") for s in samples]),
-            "fallbacks": fallbacks,
-            "other": {k: v for k, v in counters.items() if k not in bal},
-        }
+            summary = self.book.summary(self._samples())
+        return {"robot": self.opts.robot_id, "source": self.source.name, "strategy": self.strategy.name,
+                "local_model": self.local.name, "encoding": self.opts.encoding,
+                "cpu_quota": self.opts.cpu_quota, "cpu_quota_applied": self.opts.quota_mode,
+                "power_available": RaplMonitor().available, **summary}
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -366,7 +319,7 @@ class CameraOffloader:
         with self._lock:
             recs = [self.book.records[k] for k in sorted(self.book.records)]
             persons = dict(self.book.persons)
-            samples = list(self.samples)
+            samples = self._samples()
         with open(out_dir / "frames.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=FRAME_FIELDS, extrasaction="ignore")
             w.writeheader()
@@ -380,8 +333,7 @@ class CameraOffloader:
                  else np.zeros(0, np.float32),
                  period=self.camera.period)
         with open(out_dir / "monitor.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=["t", "cpu_system", "cpu_process", "mbps_out", "power_w",
-                                              "ping_ms"])
+            w = csv.DictWriter(f, fieldnames=ResourceMonitor.FIELDS)
             w.writeheader()
             w.writerows(samples)
 

@@ -20,6 +20,7 @@ present; ``resume_after`` prompt answers in a row end the fallback (hysteresis).
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
@@ -216,3 +217,31 @@ class FrameBook:
     def balanced(self) -> bool:
         b = self.balance()
         return b["frames_in"] == sum(b[k] for k in (*DONE, *DROPPED)) + b["pending"]
+
+    def summary(self, samples: list[dict[str, float]]) -> dict[str, Any]:
+        """The run in figures, as the offloading thesis reports it, with the monitor ``samples``
+        (CPU, Mbps, power, ping once a second) averaged."""
+        bal, recs = self.balance(), list(self.records.values())
+        done = bal["local_done"] + bal["edge_done"]
+
+        def mean(xs: list[Any]) -> float | None:
+            xs = [x for x in xs if x is not None and math.isfinite(x)]
+            return float(np.mean(xs)) if xs else None
+
+        return {
+            "balance": bal,
+            "balanced": self.balanced(),
+            "processed_pct": 100.0 * done / bal["frames_in"] if bal["frames_in"] else 0.0,
+            "offloaded_pct": 100.0 * self.strategy.offloaded / max(self.strategy.total, 1),
+            "robot_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "local_done"]),
+            "edge_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "edge_done"]),
+            "local_infer_ms": mean([r.get("local_infer_ms") for r in recs]),
+            "edge_infer_ms": mean([r.get("edge_infer_ms") for r in recs if r["status"] == "edge_done"]),
+            "cpu_process_pct": mean([s["cpu_process"] for s in samples]),
+            "cpu_system_pct": mean([s["cpu_system"] for s in samples]),
+            "mbps_out": mean([s["mbps_out"] for s in samples]),
+            "power_w": mean([s["power_w"] for s in samples]),
+            "ping_ms": mean([s.get("ping_ms") for s in samples]),
+            "fallbacks": list(self.fallback_events),
+            "other": {k: v for k, v in self.counters.items() if k not in bal},
+        }

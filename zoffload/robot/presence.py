@@ -14,6 +14,7 @@ from collections.abc import Callable
 import zenoh
 
 from zoffload.protocol.keys import Keys
+from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.robot.presence")
 
@@ -41,12 +42,8 @@ class EdgePresence:
             self.keys.any_edge_alive(), self._on_token, history=True)
 
     def stop(self) -> None:
-        if self._sub is not None:
-            try:
-                self._sub.undeclare()
-            except Exception as exc:  # a session already closed
-                log.debug("presence subscriber not undeclared: %s", exc)
-            self._sub = None
+        undeclare(self._sub)
+        self._sub = None
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         edge = self.keys.last_chunk(str(sample.key_expr))

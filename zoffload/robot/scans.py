@@ -36,6 +36,7 @@ from zoffload.robot.presence import EdgePresence
 from zoffload.robot.sensor import Reading, SensorThread
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
+from zoffload.runtime.session import undeclare
 from zoffload.sources import ScanSource, open_scan_source
 
 log = logging.getLogger("zoffload.robot.scans")
@@ -92,12 +93,7 @@ class ScanStreamer:
                  self.policy.name, self.opts.coding)
 
     def close(self) -> None:
-        for entity in (getattr(self, "_ack_sub", None), getattr(self, "_scan_pub", None)):
-            if entity is not None:
-                try:
-                    entity.undeclare()
-                except Exception as exc:  # the session is closing
-                    log.debug("not undeclared: %s", exc)
+        undeclare(getattr(self, "_ack_sub", None), getattr(self, "_scan_pub", None))
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         recv = time.monotonic()

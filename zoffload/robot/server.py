@@ -27,10 +27,11 @@ from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.robot.pipeline import Pipeline
 from zoffload.robot.presence import EdgePresence
-from zoffload.runtime.config import RobotSettings, write_effective
+from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.session import open_session
+from zoffload.runtime.loading import write_effective
+from zoffload.runtime.session import open_session, undeclare
 
 log = logging.getLogger("zoffload.robot")
 
@@ -109,12 +110,7 @@ class RobotServer:
             write_effective(self.settings, Path(out) / "robot_config.yaml")
             for p in self.pipelines:
                 p.write_results(Path(out))
-        for entity in (self._status_pub, self._token):
-            if entity is not None:
-                try:
-                    entity.undeclare()
-                except Exception as exc:  # the session is closing
-                    log.debug("not undeclared: %s", exc)
+        undeclare(self._status_pub, self._token)
         if self._owns_session and self.session is not None:
             self.session.close()
         self.session = None

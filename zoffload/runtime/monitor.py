@@ -133,3 +133,55 @@ class Pinger:
                 self.lost += 1
                 ms = self.timeout * 1e3
             self.rtt.add(ms)
+
+
+class ResourceMonitor:
+    """Once a second: this process's and the machine's CPU, outgoing Mbps from a byte counter, RAPL
+    power, and the ping-pong RTT to the edge; keeps every sample and 3-sample moving averages of
+    CPU and Mbps (what the offloading rules read)."""
+
+    FIELDS = ("t", "cpu_system", "cpu_process", "mbps_out", "power_w", "ping_ms")
+
+    def __init__(self, session: zenoh.Session, ping_key: str, bytes_out: Callable[[], float],
+                 ping_timeout: float = 0.5, period: float = 1.0) -> None:
+        self.session, self.ping_key, self.bytes_out = session, ping_key, bytes_out
+        self.ping_timeout, self.period = ping_timeout, period
+        self.cpu = MovingAverage(3)
+        self.mbps = MovingAverage(3)
+        self.samples: list[dict[str, float]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="monitor", daemon=True)
+
+    def start(self) -> ResourceMonitor:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=self.ping_timeout + 2)
+
+    def _run(self) -> None:
+        cpu, rapl, rate = CpuMonitor(), RaplMonitor(), ByteRate(self.bytes_out)
+        # ping-pong over the edge's ping queryable: the network's share of the edge RTT
+        pinger = Pinger(self.session, self.ping_key, period=self.period, timeout=self.ping_timeout).start()
+        try:
+            while not self._stop.wait(self.period):
+                system, proc = cpu.sample()
+                mbps, watts = rate.sample(), rapl.sample()
+                with self._lock:
+                    self.cpu.add(proc)
+                    self.mbps.add(mbps)
+                    self.samples.append({"t": time.time(), "cpu_system": system, "cpu_process": proc,
+                                         "mbps_out": mbps, "power_w": watts, "ping_ms": pinger.rtt.value})
+        finally:
+            pinger.stop()
+
+    def smoothed(self) -> tuple[float, float]:
+        """(process CPU %, outgoing Mbps), 3-sample moving averages (NaN before the first)."""
+        with self._lock:
+            return self.cpu.value, self.mbps.value
+
+    def history(self) -> list[dict[str, float]]:
+        with self._lock:
+            return list(self.samples)

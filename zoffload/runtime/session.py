@@ -4,6 +4,7 @@ for local runs and tests."""
 from __future__ import annotations
 
 import json
+import logging
 import socket
 from typing import Any
 
@@ -60,3 +61,15 @@ def has_subscribers(publisher: zenoh.Publisher) -> bool:
     ``matching_status`` as bool; at run time it is a ``MatchingStatus`` with ``.matching``.)"""
     status: Any = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+def undeclare(*entities: Any) -> None:
+    """Undeclare subscribers, publishers, queryables and tokens; None entries are skipped. A
+    session already closing makes this fail, which at shutdown is no news."""
+    for entity in entities:
+        if entity is None:
+            continue
+        try:
+            entity.undeclare()
+        except Exception as exc:  # the session is closing
+            logging.getLogger("zoffload.session").debug("%s not undeclared: %s", type(entity).__name__, exc)

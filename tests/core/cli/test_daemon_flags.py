@@ -9,16 +9,8 @@ from typing import Any
 import pytest
 from pydantic import BaseModel
 
-from zoffload.cli.main import (
-    build_parser,
-    edge_main,
-    edge_parser,
-    edge_settings,
-    robot_main,
-    robot_parser,
-    robot_settings,
-    session_flags,
-)
+from zoffload.cli.daemons import edge_parser, edge_settings, robot_parser, robot_settings, session_flags
+from zoffload.cli.main import build_parser, edge_main, robot_main
 from zoffload.runtime.config import EdgeSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
 

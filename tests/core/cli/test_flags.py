@@ -8,9 +8,10 @@ from typing import Literal
 import pytest
 from pydantic import BaseModel, Field
 
+from zoffload.cli.daemons import ROBOT_SPELLINGS, robot_parser
 from zoffload.cli.flags import Spelling, add_settings_flags, flag_values, option_name
-from zoffload.cli.main import ROBOT_SPELLINGS, robot_parser
-from zoffload.runtime.config import PerceptionSettings, RobotSettings, load_settings
+from zoffload.runtime.config import PerceptionSettings, RobotSettings
+from zoffload.runtime.loading import load_settings
 
 
 class Arm(BaseModel):
