@@ -4,22 +4,36 @@ Each message is one msgpack map: ``v`` (codec version), ``t`` (message type) and
 fields. Scalars stay scalars; numpy arrays travel as a map ``{"nd": dtype, "shape": [...],
 "data": raw bytes}`` so a 100k-point scan costs one memory copy, not a per-element encoding.
 
-``decode`` checks everything a peer could get wrong (version, type, missing or extra fields,
-scalar types, array dtype, shape and byte length) and raises ``WireError`` with the reason; the
-daemons count and log those drops and carry on.
+The network is hostile: ``decode`` raises ``WireError`` and nothing else for any bytes, and checks
+every field before anything is sized from it — version, type, missing or extra fields, scalar
+types, finite floats within each field's range (NaN only where a field means "not measured"),
+sequence numbers below 2^63, ids that are key chunks of at most 64 characters, array dtypes,
+shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixels per frame,
+detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
+message declares before they allocate.
+
+Versions: this build sends version 2 and reads 1 and 2. Version 2 only added fields with defaults
+(the assignment epoch and answering edge, deliberately skipped scans, per-point times) and
+messages (checkpoint, attach, attach reply), so a version-1 sender is still understood.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar, cast, overload
 
 import msgpack
 import numpy as np
 
-VERSION = 1
+VERSION = 2
+READS = (1, 2)
+SEQ_MAX = 2**63 - 1
+ID_MAX = 64
+ORIGIN_MAX = 1e6  # metres: a q16z scan's corner (its extent is at most 65,535 steps of 1 m)
+_ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
 
 class WireError(ValueError):
@@ -27,11 +41,30 @@ class WireError(ValueError):
 
 
 @dataclass(frozen=True)
+class Limits:
+    """What a receiver accepts at most; every cap is checked before anything is allocated."""
+
+    max_points: int = 4_000_000  # points in one scan (an HDL-64 sweep is ~120k, a 128-beam ~260k)
+    max_pixels: int = 7680 * 4320  # pixels of one camera frame (8K)
+    max_detections: int = 10_000  # boxes in one detections message
+    max_map_points: int = 100_000_000  # points in a map reply or checkpoint
+    max_status_values: int = 1024  # entries of a status message
+    max_bytes: int = 512 * 1024 * 1024  # one encoded message
+
+
+DEFAULT_LIMITS = Limits()
+
+
+@dataclass(frozen=True)
 class ArraySpec:
-    """What an array field may hold: one dtype and a shape with ``-1`` for free dimensions."""
+    """What an array field may hold: one dtype, a shape with ``-1`` for free dimensions, whether
+    float values must be finite (``"finite"``, ``"nan-or-finite"``: all NaN means "none") and which
+    ``Limits`` cap bounds its first dimension."""
 
     dtype: str
     shape: tuple[int, ...]
+    values: str = "finite"
+    cap: str | None = None
 
     def check(self, name: str, arr: np.ndarray) -> np.ndarray:
         if arr.dtype != np.dtype(self.dtype):
@@ -42,10 +75,46 @@ class ArraySpec:
             raise WireError(f"field {name!r}: shape {arr.shape} does not fit {self.shape}")
         return arr
 
+    def check_values(self, name: str, arr: np.ndarray) -> None:
+        if arr.dtype.kind != "f" or self.values == "any" or arr.size == 0:
+            return
+        # A finite sum proves every value finite (NaN and inf propagate): one reduction for the
+        # common clean array
+        if np.isfinite(np.add.reduce(arr, axis=None, dtype=np.float64)):
+            return
+        if self.values == "nan-or-finite" and np.isnan(arr).all():
+            return
+        if not np.isfinite(arr).all():
+            raise WireError(f"field {name!r}: non-finite values")
+
+
+@dataclass(frozen=True)
+class Num:
+    """Bounds of a number field; ``nan`` allows NaN for "not measured" (inf never)."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    nan: bool = False
+
 
 def _array(spec: ArraySpec, optional: bool = False) -> Any:
     """An array field; an ``optional`` one may be absent on the wire (then it is None)."""
     return field(default=None, metadata={"array": spec, "optional": optional})
+
+
+def _num(default: Any = dataclasses.MISSING, lo: float = -math.inf, hi: float = math.inf,
+         nan: bool = False, bounds: Num | None = None) -> Any:
+    return field(default=default, metadata={"num": bounds or Num(lo, hi, nan)})
+
+
+def _text(default: Any = dataclasses.MISSING, choices: tuple[str, ...] | None = None, max_len: int = 1000,
+          ident: bool = False) -> Any:
+    return field(default=default, metadata={"choices": choices, "max_len": max_len, "ident": ident})
+
+
+SEQ = Num(0, SEQ_MAX)
+STAMP = Num(-1e12, 1e12)  # seconds of some clock: wall or monotonic, never absurd
+DURATION = Num(0.0, 3600.0, nan=True)  # a measured duration, NaN when not measured
 
 
 class Message:
@@ -59,35 +128,55 @@ class Scan(Message):
     """One downsampled LiDAR scan, robot → edge."""
 
     TYPE: ClassVar[str] = "scan"
-    robot: str
-    seq: int
-    send_stamp: float  # robot clock (time.time()), echoed back in the ack
-    capture_stamp: float  # sensor time of the scan
-    voxel: float  # voxel size used for this scan [m]; 0 = not downsampled
-    voxel_max: float  # upper end of the robot's voxel range: sizes the edge mapper
-    max_range: float  # the sensor's range limit [m]: sizes the edge mapper
-    n_raw: int  # points before downsampling
-    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3)))  # coding "f32"; empty for "q16z"
-    coding: str = "f32"  # "f32" or "q16z" (coding.py: quantised to quant_step, zstd-compressed)
-    quant_step: float = 0.0
-    n_points: int = -1  # points in ``packed`` (q16z)
+    robot: str = _text(ident=True)
+    seq: int = _num(bounds=SEQ)  # the sensor's scan number: gaps are scans not sent or lost
+    send_stamp: float = _num(bounds=STAMP)  # robot clock (time.monotonic()), echoed back in the ack
+    capture_stamp: float = _num(bounds=STAMP)  # robot wall clock when the scan was complete
+    voxel: float = _num(lo=0.0, hi=10.0)  # voxel size used for this scan [m]; 0 = not downsampled
+    voxel_max: float = _num(lo=0.0, hi=10.0)  # upper end of the robot's voxel range: sizes the mapper
+    max_range: float = _num(lo=0.1, hi=10_000.0)  # the sensor's range limit [m]: sizes the mapper
+    n_raw: int = _num(lo=0, hi=1e9)  # points before downsampling
+    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_points"))  # "f32"; empty for "q16z"
+    coding: str = _text("f32", choices=("f32", "q16z"))  # coding.py: q16z quantised + Zstandard
+    quant_step: float = _num(0.0, lo=0.0, hi=1.0)
+    n_points: int = _num(-1, lo=-1, hi=1e9)  # points in ``packed`` (q16z), checked against max_points
     origin: np.ndarray | None = _array(ArraySpec("<f8", (3,)), optional=True)
     packed: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True)
+    # Version 2
+    epoch: int = _num(0, bounds=SEQ)  # the robot's assignment epoch: an answer from an older one is stale
+    skipped: int = _num(0, lo=0, hi=1e6)  # scans deliberately not sent just before this one
+    time_span: float = _num(0.0, lo=0.0, hi=10.0)  # seconds the points' times cover; 0 = no times
+    times: np.ndarray | None = _array(ArraySpec("<u2", (-1,), cap="max_points"), optional=True)  # f32
 
-    def cloud(self) -> np.ndarray:
+    def cloud(self, limits: Limits = DEFAULT_LIMITS) -> np.ndarray:
         """The scan's points as float32 (n, 3), decoded if coded; ``WireError`` if it cannot be."""
-        if self.coding == "f32":
-            return self.points
-        if self.coding == "q16z":
-            from zoffload.protocol.coding import CodingError, decode_q16z
+        return self.cloud_and_times(limits)[0]
 
+    def cloud_and_times(self, limits: Limits = DEFAULT_LIMITS) -> tuple[np.ndarray, np.ndarray | None]:
+        """Points (n, 3) float32 and, when the scan carries them, per-point times in seconds from
+        the scan's first point (n,) float64; ``WireError`` if the payload does not decode."""
+        from zoffload.protocol.coding import CodingError, decode_q16z, times_from_u16
+
+        if self.coding == "f32":
+            pts, q = self.points, self.times
+        else:  # q16z
             if self.packed is None or self.origin is None or self.quant_step <= 0 or self.n_points < 0:
                 raise WireError("q16z scan without packed data, origin, step or point count")
+            if self.n_points > limits.max_points:
+                raise WireError(f"q16z scan of {self.n_points} points (at most {limits.max_points})")
+            if not np.all(np.abs(self.origin) <= ORIGIN_MAX):
+                raise WireError(f"q16z scan origin {self.origin.tolist()} beyond {ORIGIN_MAX:g} m")
             try:
-                return decode_q16z(self.packed.tobytes(), self.n_points, self.origin, self.quant_step)
+                pts, q = decode_q16z(self.packed, self.n_points, self.origin, self.quant_step,
+                                     with_times=self.time_span > 0)
             except CodingError as exc:
                 raise WireError(str(exc)) from exc
-        raise WireError(f"unknown scan coding {self.coding!r} (f32, q16z)")
+        if self.time_span <= 0:
+            return pts, None
+        if q is None or len(q) != len(pts):
+            raise WireError(f"scan with a time span but {0 if q is None else len(q)} times for "
+                            f"{len(pts)} points")
+        return pts, times_from_u16(q, self.time_span)
 
 
 @dataclass(frozen=True)
@@ -95,19 +184,23 @@ class ScanAck(Message):
     """The edge's answer to one scan. Durations are on the edge clock; stamps are echoed."""
 
     TYPE: ClassVar[str] = "scan_ack"
-    robot: str
-    seq: int
-    send_stamp: float  # echo of Scan.send_stamp (robot clock)
-    status: str  # "ok" | "dropped" (edge overloaded) | "error" (registration failed)
-    interarrival: float  # T: edge-clock time since the previous scan of this robot arrived; NaN first
-    queue_time: float  # waiting on the edge before registration [s]
-    proc_time: float  # registration time [s]: KISS-ICP plus the global-map update
-    icp_time: float  # of which KISS-ICP itself [s]
-    map_points: int
-    keypoints: int  # points KISS-ICP registered against the map
-    sigma: float  # KISS-ICP adaptive threshold after this scan
-    detail: str = ""
-    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4)))
+    robot: str = _text(ident=True)
+    seq: int = _num(bounds=SEQ)
+    send_stamp: float = _num(bounds=STAMP)  # echo of Scan.send_stamp (robot clock)
+    # "ok" | "dropped" (edge overloaded) | "error" (registration failed) | "refused" (not admitted)
+    status: str = _text(choices=("ok", "dropped", "error", "refused"))
+    interarrival: float = _num(bounds=DURATION)  # T: edge clock since the robot's previous scan; NaN first
+    queue_time: float = _num(bounds=DURATION)  # waiting on the edge before registration [s]
+    proc_time: float = _num(bounds=DURATION)  # registration time [s]: KISS-ICP plus the global-map update
+    icp_time: float = _num(bounds=DURATION)  # of which KISS-ICP itself [s]
+    map_points: int = _num(lo=0, hi=1e12)
+    keypoints: int = _num(lo=0, hi=1e9)  # points KISS-ICP registered against the map
+    sigma: float = _num(lo=0.0, hi=1e6, nan=True)  # KISS-ICP adaptive threshold after this scan
+    detail: str = _text("")
+    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="nan-or-finite"))  # all NaN: no pose
+    # Version 2
+    epoch: int = _num(0, bounds=SEQ)  # echo of Scan.epoch
+    edge: str = _text("", max_len=ID_MAX)  # the answering edge
 
 
 @dataclass(frozen=True)
@@ -116,14 +209,23 @@ class Frame(Message):
     bytes) or "jpeg"."""
 
     TYPE: ClassVar[str] = "frame"
-    robot: str
-    seq: int
-    send_stamp: float  # robot monotonic clock, echoed back in the detections
-    capture_stamp: float  # robot monotonic clock when the camera delivered the frame
-    encoding: str
-    width: int
-    height: int
+    robot: str = _text(ident=True)
+    seq: int = _num(bounds=SEQ)
+    send_stamp: float = _num(bounds=STAMP)  # robot clock, echoed back in the detections
+    capture_stamp: float = _num(bounds=STAMP)  # robot clock when the camera delivered the frame
+    encoding: str = _text(choices=("bgr8", "jpeg"))
+    width: int = _num(lo=1, hi=65_535)
+    height: int = _num(lo=1, hi=65_535)
     data: np.ndarray = _array(ArraySpec("|u1", (-1,)))
+
+    def check_size(self, limits: Limits = DEFAULT_LIMITS) -> None:
+        """``WireError`` unless the declared size is within the pixel cap and, for raw frames,
+        the data is exactly that size (a JPEG's own header is checked before it is decoded)."""
+        if self.width * self.height > limits.max_pixels:
+            raise WireError(f"frame of {self.width}x{self.height} pixels (at most {limits.max_pixels})")
+        if self.encoding == "bgr8" and self.data.size != self.width * self.height * 3:
+            raise WireError(f"bgr8 frame of {self.data.size} bytes, {self.width}x{self.height}x3 = "
+                            f"{self.width * self.height * 3} expected")
 
 
 @dataclass(frozen=True)
@@ -131,19 +233,24 @@ class Detections(Message):
     """The edge detector's answer to one frame; boxes in the frame's pixels (x1, y1, x2, y2)."""
 
     TYPE: ClassVar[str] = "detections"
-    robot: str
-    seq: int
-    send_stamp: float  # echo of Frame.send_stamp (robot clock)
-    edge: str
-    model: str
-    status: str  # "ok" | "error" (undecodable frame) | "dropped" (edge overloaded)
-    infer_time: float  # edge inference [s]
-    queue_time: float  # waiting on the edge before inference [s]
-    batch: int  # frames served in the same pass as this one
-    detail: str = ""
-    boxes: np.ndarray = _array(ArraySpec("<f4", (-1, 4)))
-    scores: np.ndarray = _array(ArraySpec("<f4", (-1,)))
-    classes: np.ndarray = _array(ArraySpec("<i4", (-1,)))
+    robot: str = _text(ident=True)
+    seq: int = _num(bounds=SEQ)
+    send_stamp: float = _num(bounds=STAMP)  # echo of Frame.send_stamp (robot clock)
+    edge: str = _text(ident=True)
+    model: str = _text(max_len=ID_MAX)
+    status: str = _text(choices=("ok", "error", "dropped"))  # "error": undecodable; "dropped": overloaded
+    infer_time: float = _num(bounds=DURATION)  # edge inference [s]
+    queue_time: float = _num(bounds=DURATION)  # waiting on the edge before inference [s]
+    batch: int = _num(lo=0, hi=1e6)  # frames served in the same pass as this one
+    detail: str = _text("")
+    boxes: np.ndarray = _array(ArraySpec("<f4", (-1, 4), cap="max_detections"))
+    scores: np.ndarray = _array(ArraySpec("<f4", (-1,), cap="max_detections"))
+    classes: np.ndarray = _array(ArraySpec("<i4", (-1,), cap="max_detections"))
+
+    def __post_init__(self) -> None:
+        if not len(self.boxes) == len(self.scores) == len(self.classes):
+            raise WireError(f"detections: {len(self.boxes)} boxes, {len(self.scores)} scores, "
+                            f"{len(self.classes)} classes")
 
 
 @dataclass(frozen=True)
@@ -151,11 +258,11 @@ class MapReply(Message):
     """A robot's registered map and trajectory, answered by the edge's map queryable."""
 
     TYPE: ClassVar[str] = "map"
-    robot: str
-    scans: int
-    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3)))
-    seqs: np.ndarray = _array(ArraySpec("<i8", (-1,)))
-    poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4)))
+    robot: str = _text(ident=True)
+    scans: int = _num(lo=0, hi=SEQ_MAX)
+    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))
+    seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
+    poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), cap="max_map_points"))
 
 
 @dataclass(frozen=True)
@@ -163,8 +270,8 @@ class Pong(Message):
     """Answer to a ping query: the edge's id, echoing the robot's stamp."""
 
     TYPE: ClassVar[str] = "pong"
-    edge: str
-    stamp: float
+    edge: str = _text(ident=True)
+    stamp: float = _num(lo=-1e12, hi=1e12, nan=True)
 
 
 @dataclass(frozen=True)
@@ -172,22 +279,79 @@ class Status(Message):
     """Counters and gauges of one daemon, published about once a second."""
 
     TYPE: ClassVar[str] = "status"
-    source: str  # "robot" | "edge"
-    id: str
-    stamp: float
+    source: str = _text(choices=("robot", "edge"))
+    id: str = _text(ident=True)
+    stamp: float = _num(bounds=STAMP)
     values: dict[str, float] = field(default_factory=dict)
 
 
-MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Scan, ScanAck, Frame, Detections, MapReply, Pong, Status)
-}
+@dataclass(frozen=True)
+class Checkpoint(Message):
+    """A robot's mapping state, compact enough to send every few scans: the edge sends it to its
+    robot, which holds the latest, so the next edge (or the robot's own odometry) continues the
+    trajectory in the same frame. Also built by the robot from its local odometry."""
 
-_SCALARS: dict[Any, tuple[type, ...]] = {
-    "int": (int,),
-    "float": (float, int),
-    "str": (str,),
-    "dict[str, float]": (dict,),
+    TYPE: ClassVar[str] = "checkpoint"
+    robot: str = _text(ident=True)
+    edge: str = _text(max_len=ID_MAX)  # who made it ("" = the robot itself)
+    epoch: int = _num(bounds=SEQ)
+    seq: int = _num(bounds=SEQ)  # the last scan registered
+    stamp: float = _num(bounds=STAMP)  # robot wall clock of that scan (its capture stamp)
+    voxel_size: float = _num(lo=1e-3, hi=100.0)  # the mapper's configuration
+    max_range: float = _num(lo=0.1, hi=10_000.0)
+    min_range: float = _num(lo=0.0, hi=10_000.0)
+    max_points_per_voxel: int = _num(lo=1, hi=1000)
+    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # sensor → world after that scan
+    delta: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # the last motion per scan period
+    points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))  # coarse local map, world
+
+
+@dataclass(frozen=True)
+class Attach(Message):
+    """A robot asking an edge to map it (the payload of a query on the edge's attach key): its
+    sensor, the epoch it proposes, the checkpoint to continue from (an encoded ``Checkpoint``,
+    empty for a fresh start) and the poses it estimated itself since that checkpoint."""
+
+    TYPE: ClassVar[str] = "attach"
+    robot: str = _text(ident=True)
+    epoch: int = _num(bounds=SEQ)
+    max_range: float = _num(lo=0.1, hi=10_000.0)
+    voxel_max: float = _num(lo=0.0, hi=10.0)
+    rate_hz: float = _num(lo=0.01, hi=1000.0)
+    checkpoint: bytes = b""
+    local_seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
+    local_poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), cap="max_map_points"))
+
+    def __post_init__(self) -> None:
+        if len(self.local_seqs) != len(self.local_poses):
+            raise WireError(f"attach: {len(self.local_seqs)} seqs for {len(self.local_poses)} poses")
+
+
+@dataclass(frozen=True)
+class AttachReply(Message):
+    """The edge's answer to an attach: accepted (mapping under ``epoch``) or refused, and why."""
+
+    TYPE: ClassVar[str] = "attach_reply"
+    robot: str = _text(ident=True)
+    edge: str = _text(ident=True)
+    epoch: int = _num(bounds=SEQ)
+    accepted: bool = False
+    detail: str = _text("")
+    robots: int = _num(0, lo=0, hi=1e6)  # robots this edge maps now
+    capacity: int = _num(0, lo=0, hi=1e6)  # robots it takes at most
+
+
+MESSAGES: dict[str, type[Message]] = {
+    m.TYPE: m for m in (Scan, ScanAck, Frame, Detections, MapReply, Pong, Status, Checkpoint, Attach,
+                        AttachReply)
 }
+M = TypeVar("M", bound=Message)
+
+
+def check_id(value: str, what: str = "id") -> str:
+    if not _ID.match(value):
+        raise WireError(f"{what} {value[:80]!r}: not an id (1-64 letters, digits, '_', '-', '.')")
+    return value
 
 
 def _enc_array(arr: np.ndarray) -> dict[str, Any]:
@@ -198,27 +362,34 @@ def _enc_array(arr: np.ndarray) -> dict[str, Any]:
     return {"nd": arr.dtype.str, "shape": list(arr.shape), "data": data}
 
 
-def _dec_array(name: str, obj: Any, spec: ArraySpec) -> np.ndarray:
+def _dec_array(name: str, obj: Any, spec: ArraySpec, limits: Limits) -> np.ndarray:
     if not isinstance(obj, dict) or set(obj) != {"nd", "shape", "data"}:
         raise WireError(f"field {name!r}: not an encoded array")
     dtype_s, shape, data = obj["nd"], obj["shape"], obj["data"]
     if not isinstance(dtype_s, str) or not isinstance(data, bytes) or not isinstance(shape, list):
         raise WireError(f"field {name!r}: malformed array header")
-    if not all(isinstance(d, int) and d >= 0 for d in shape):
+    if len(shape) > 4 or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**40
+                                 for d in shape):
         raise WireError(f"field {name!r}: bad shape {shape!r}")
-    try:
-        dtype = np.dtype(dtype_s)
-    except TypeError as exc:
-        raise WireError(f"field {name!r}: unknown dtype {dtype_s!r}") from exc
-    if dtype.hasobject:
-        raise WireError(f"field {name!r}: object arrays are not allowed")
+    if dtype_s != spec.dtype:  # one dtype per field: nothing else is even parsed
+        try:
+            other = np.dtype(dtype_s)
+        except Exception as exc:  # numpy raises TypeError, ValueError, SyntaxError for odd strings
+            raise WireError(f"field {name!r}: unknown dtype {dtype_s[:40]!r}") from exc
+        if other.hasobject:
+            raise WireError(f"field {name!r}: object arrays are not allowed")
+        raise WireError(f"field {name!r}: dtype {dtype_s!r} where {spec.dtype} is expected")
+    dtype = np.dtype(spec.dtype)
     expected = math.prod(shape) * dtype.itemsize
     if len(data) != expected:
         raise WireError(
             f"field {name!r}: {len(data)} bytes for shape {shape} {dtype_s} ({expected} expected)"
         )
-    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
-    return spec.check(name, arr)
+    if spec.cap is not None and shape and shape[0] > getattr(limits, spec.cap):
+        raise WireError(f"field {name!r}: {shape[0]} rows (at most {getattr(limits, spec.cap)}, {spec.cap})")
+    arr = spec.check(name, np.frombuffer(data, dtype=dtype).reshape(shape))
+    spec.check_values(name, arr)
+    return arr
 
 
 def encode(msg: Message) -> bytes:
@@ -231,45 +402,102 @@ def encode(msg: Message) -> bytes:
             continue
         if spec is not None:
             value = _enc_array(spec.check(f.name, np.asarray(value)))
-        elif isinstance(value, (np.floating, np.integer)):
+        elif isinstance(value, (np.floating, np.integer, np.bool_)):
             value = value.item()
         out[f.name] = value
     return msgpack.packb(out, use_bin_type=True)
 
 
-M = TypeVar("M", bound=Message)
+_SCALARS: dict[Any, tuple[type, ...]] = {
+    "int": (int,), "float": (float, int), "str": (str,), "bool": (bool,), "bytes": (bytes,),
+    "dict[str, float]": (dict,),
+}
+
+
+def _check_scalar(kind: str, name: str, f: dataclasses.Field[Any], value: Any, limits: Limits) -> Any:
+    allowed = _SCALARS.get(f.type, ())
+    if (isinstance(value, bool) and f.type != "bool") or not isinstance(value, allowed):
+        raise WireError(f"{kind}: field {name!r} has type {type(value).__name__}")
+    return _check_value(kind, name, f, value, limits)
+
+
+def _check_value(kind: str, name: str, f: dataclasses.Field[Any], value: Any, limits: Limits) -> Any:
+    num: Num | None = f.metadata.get("num")
+    if f.type == "float":
+        value = float(cast(float, value))
+        if math.isnan(value):
+            if num is None or not num.nan:
+                raise WireError(f"{kind}: field {name!r} is NaN")
+        elif num is not None and not num.lo <= value <= num.hi:
+            raise WireError(f"{kind}: field {name!r} = {value!r} outside [{num.lo}, {num.hi}]")
+    elif f.type == "int" and num is not None and not num.lo <= value <= num.hi:
+        raise WireError(f"{kind}: field {name!r} = {value} outside [{num.lo:g}, {num.hi:g}]")
+    elif f.type == "str":
+        if f.metadata.get("ident"):
+            check_id(value, f"{kind}: field {name!r}")
+        choices = f.metadata.get("choices")
+        if choices and value not in choices:
+            raise WireError(f"{kind}: field {name!r} = {value[:40]!r}, not one of {', '.join(choices)}")
+        if len(value) > f.metadata.get("max_len", 1000):
+            raise WireError(f"{kind}: field {name!r} longer than {f.metadata.get('max_len', 1000)}")
+    elif f.type == "dict[str, float]":
+        if len(value) > limits.max_status_values or not all(
+            isinstance(k, str) and len(k) <= 128 and isinstance(v, (int, float)) and not isinstance(v, bool)
+            and not (isinstance(v, float) and math.isinf(v))
+            for k, v in value.items()
+        ):
+            raise WireError(f"{kind}: field {name!r} must map at most {limits.max_status_values} names to "
+                            "numbers (finite or NaN)")
+    return value
 
 
 @overload
-def decode(data: bytes | bytearray | memoryview, expect: type[M]) -> M: ...
+def decode(data: bytes | bytearray | memoryview, expect: type[M], limits: Limits = ...) -> M: ...
 
 
 @overload
-def decode(data: bytes | bytearray | memoryview, expect: None = None) -> Message: ...
+def decode(data: bytes | bytearray | memoryview, expect: None = None, limits: Limits = ...) -> Message: ...
 
 
-def decode(data: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> Message:
-    """Parse bytes into a message, checking every field; raise ``WireError`` on anything off.
-    With ``expect``, anything but that message type is a ``WireError`` and the result is typed."""
+def decode(data: bytes | bytearray | memoryview, expect: type[Message] | None = None,
+           limits: Limits = DEFAULT_LIMITS) -> Message:
+    """Parse bytes into a message, checking every field; raise ``WireError`` (and nothing else)
+    on anything off. With ``expect``, any other message type is a ``WireError`` and the result
+    is typed."""
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+        return _decode(data, expect, limits)
+    except WireError:
+        raise
+    except Exception as exc:  # a case the checks above missed must still not escape as a crash
+        raise WireError(f"undecodable: {exc.__class__.__name__}: {str(exc)[:200]}") from exc
+
+
+def _decode(data: bytes | bytearray | memoryview, expect: type[Message] | None, limits: Limits) -> Message:
+    if len(data) > limits.max_bytes:
+        raise WireError(f"{len(data)} bytes (at most {limits.max_bytes})")
+    try:
+        # Containers and strings can be no longer than the payload itself: msgpack must not
+        # pre-allocate what a forged length prefix claims
+        n = len(data)
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, max_str_len=n, max_bin_len=n,
+                              max_array_len=n, max_map_len=n, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated exception types
-        raise WireError(f"not msgpack: {exc.__class__.__name__}: {exc}") from exc
+        raise WireError(f"not msgpack: {exc.__class__.__name__}: {str(exc)[:200]}") from exc
     if not isinstance(obj, dict):
         raise WireError("not a message map")
     version = obj.pop("v", None)
-    if version != VERSION:
-        raise WireError(f"codec version {version!r}, this build speaks {VERSION}")
+    if version not in READS or isinstance(version, bool):
+        raise WireError(f"codec version {version!r}, this build reads {', '.join(map(str, READS))}")
     kind = obj.pop("t", None)
     cls = MESSAGES.get(kind) if isinstance(kind, str) else None
     if cls is None:
-        raise WireError(f"unknown message type {kind!r}")
+        raise WireError(f"unknown message type {str(kind)[:40]!r}")
     if expect is not None and cls is not expect:
         raise WireError(f"got a {kind!r} message where {expect.TYPE!r} is expected")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     extra = set(obj) - set(fields)
     if extra:
-        raise WireError(f"{kind}: unknown fields {sorted(extra)}")
+        raise WireError(f"{kind}: unknown fields {sorted(str(e)[:40] for e in extra)[:10]}")
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
         if name not in obj:
@@ -281,18 +509,6 @@ def decode(data: bytes | bytearray | memoryview, expect: type[Message] | None = 
             raise WireError(f"{kind}: missing field {name!r}")
         value = obj[name]
         spec = f.metadata.get("array")
-        if spec is not None:
-            value = _dec_array(name, value, spec)
-        else:
-            allowed = _SCALARS.get(f.type, ())
-            if isinstance(value, bool) or not isinstance(value, allowed):
-                raise WireError(f"{kind}: field {name!r} has type {type(value).__name__}")
-            if f.type == "float":
-                value = float(cast(float, value))
-            if f.type == "dict[str, float]" and not all(
-                isinstance(k, str) and isinstance(v, (int, float)) and not isinstance(v, bool)
-                for k, v in value.items()
-            ):
-                raise WireError(f"{kind}: field {name!r} must map names to numbers")
-        kwargs[name] = value
+        kwargs[name] = (_dec_array(name, value, spec, limits) if spec is not None
+                        else _check_scalar(kind, name, f, value, limits))
     return cls(**kwargs)

@@ -21,7 +21,7 @@ def test_round_trip_error_is_within_half_a_step_and_smaller_than_floats() -> Non
     assert step == pytest.approx(0.005)
     origin, used, blob = encode_q16z(pts, step)
     assert used == step
-    back = decode_q16z(blob, len(pts), origin, step)
+    back = decode_q16z(blob, len(pts), origin, step)[0]
     assert back.dtype == np.float32 and back.shape == pts.shape
     assert np.abs(back - pts).max() <= step / 2 + 1e-5
     assert len(blob) < 0.4 * pts.nbytes  # measured ~0.29 on simulator scans at 5 mm
@@ -34,7 +34,7 @@ def test_a_scan_too_large_for_the_grid_or_corrupt_data_is_an_error() -> None:
         encode_q16z(far, 0.01)
     origin, step, blob = encode_q16z(far, 0.01, widen=True)  # the robot widens the step instead
     assert step == pytest.approx(700 / 65535, rel=1e-6)
-    np.testing.assert_allclose(decode_q16z(blob, 2, origin, step), far, atol=step / 2 + 1e-4)
+    np.testing.assert_allclose(decode_q16z(blob, 2, origin, step)[0], far, atol=step / 2 + 1e-4)
     origin, _, blob = encode_q16z(_scan(), 0.005)
     with pytest.raises(CodingError, match="corrupt|expected"):
         decode_q16z(blob[:-5], len(_scan()), origin, 0.005)

@@ -72,9 +72,8 @@ class CuedRecipe:
 
 
 def scan(robot: str, seq: int, n: int = 100, bad: bool = False) -> bytes:
-    pts = np.random.default_rng(seq).uniform(-10, 10, (n, 3)).astype(np.float32)
-    if bad:
-        pts[0, 0] = np.nan
+    """A scan of ``n`` random points; ``bad``: one that decodes but has no point to register."""
+    pts = np.random.default_rng(seq).uniform(-10, 10, (0 if bad else n, 3)).astype(np.float32)
     return wire.encode(wire.Scan(robot=robot, seq=seq, send_stamp=float(seq), capture_stamp=0.0,
                                  voxel=0.05, voxel_max=0.07, max_range=40.0, n_raw=n, points=pts))
 
@@ -133,7 +132,7 @@ def test_map_queries_errors_and_export_on_stop(free_port: int, tmp_path: Path) -
             s.put(KEYS.scan("r1"), scan("r1", seq, bad=seq == 1))
             acks.wait(seq + 1)
         assert [a.status for a in acks.items] == ["ok", "error", "ok"]
-        assert "non-finite" in acks.items[1].detail and service.counters["errors"] == 1
+        assert "no points" in acks.items[1].detail and service.counters["errors"] == 1
 
         replies = list(s.get(KEYS.map("r1"), timeout=5))
         m = wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.MapReply)
@@ -153,7 +152,7 @@ def test_without_a_mapper_it_only_receives_and_acks(free_port: int, tmp_path: Pa
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("edge1"))
         acks = Acks(s, "r1")
-        s.put(KEYS.scan("r1"), scan("r1", 0, bad=True))  # not even decoded
+        s.put(KEYS.scan("r1"), scan("r1", 0, bad=True))  # not even registered
         wait_for(lambda: len(acks.items) == 1, what="the ack")
         assert acks.items[0].status == "ok" and acks.items[0].detail == "mapping disabled"
         assert service.robots["r1"].counters["received_only"] == 1

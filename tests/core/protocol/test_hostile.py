@@ -1,0 +1,149 @@
+"""Hostile input to the codec: anything raises ``WireError`` and nothing else, every field is
+checked before anything is sized from it, and no forged length makes it allocate."""
+
+from __future__ import annotations
+
+import math
+import resource
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zstandard
+
+from tests.fuzzing import corpus, valid_messages
+from zoffload.protocol import wire
+from zoffload.protocol.coding import CodingError, decode_q16z, encode_q16z, times_from_u16, times_to_u16
+
+
+def tamper(kind: str, **changes: object) -> bytes:
+    obj = msgpack.unpackb(valid_messages()[kind], raw=False)
+    obj.update(changes)
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def test_every_valid_message_round_trips() -> None:
+    for kind, data in valid_messages().items():
+        msg = wire.decode(data)
+        assert wire.encode(msg) == data, kind
+    scan = wire.decode(valid_messages()["scan_q16z_times"], expect=wire.Scan)
+    pts, times = scan.cloud_and_times()
+    assert pts.shape == (500, 3) and times is not None and times[0] == 0 and times[-1] == pytest.approx(0.1)
+
+
+def test_twenty_thousand_mutations_raise_wire_error_only() -> None:
+    decoded = rejected = 0
+    start = time.monotonic()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for data in corpus(seed=1, n=20_000):
+        try:
+            msg = wire.decode(data)
+        except wire.WireError:
+            rejected += 1
+            continue
+        decoded += 1
+        if isinstance(msg, wire.Scan):  # the payload inside must not escape either
+            try:
+                msg.cloud_and_times()
+            except wire.WireError:
+                pass
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak) / 1024
+    assert rejected > 15_000 and decoded > 100  # most are refused, the harmless ones pass
+    assert grown_mb < 100, f"peak RSS grew {grown_mb:.0f} MB"
+    assert time.monotonic() - start < 60
+
+
+@pytest.mark.parametrize("kind, field, value, reason", [
+    ("scan_f32", "max_range", math.inf, "max_range"),
+    ("scan_f32", "max_range", 1e200, "outside"),
+    ("scan_f32", "voxel", math.nan, "NaN"),
+    ("scan_f32", "send_stamp", -math.inf, "outside"),
+    ("scan_f32", "seq", 2**63, "outside"),
+    ("scan_f32", "seq", -1, "outside"),
+    ("scan_f32", "robot", "r" * 65, "not an id"),
+    ("scan_f32", "robot", "a/b", "not an id"),
+    ("scan_f32", "coding", "gzip", "not one of"),
+    ("scan_f32", "n_raw", 10**12, "outside"),
+    ("ack", "interarrival", math.inf, "outside"),
+    ("ack", "status", "pwned", "not one of"),
+    ("ack", "detail", "x" * 5000, "longer"),
+    ("frame", "width", 0, "outside"),
+    ("status", "values", {"x": math.inf}, "numbers"),
+    ("status", "values", {str(i): 1.0 for i in range(2000)}, "at most"),
+    ("attach_reply", "accepted", 1, "type int"),
+])
+def test_field_limits(kind: str, field: str, value: object, reason: str) -> None:
+    with pytest.raises(wire.WireError, match=reason):
+        wire.decode(tamper(kind, **{field: value}))
+
+
+def test_nan_means_not_measured_only_where_a_field_says_so() -> None:
+    ack = wire.decode(tamper("ack", interarrival=math.nan, sigma=math.nan), expect=wire.ScanAck)
+    assert math.isnan(ack.interarrival) and math.isnan(ack.sigma)
+    nan_pose = {"nd": "<f8", "shape": [4, 4], "data": np.full(16, np.nan).tobytes()}
+    assert np.isnan(wire.decode(tamper("ack", pose=nan_pose), expect=wire.ScanAck).pose).all()
+    half = np.eye(4)
+    half[0, 0] = np.nan
+    with pytest.raises(wire.WireError, match="non-finite"):
+        wire.decode(tamper("ack", pose={"nd": "<f8", "shape": [4, 4], "data": half.tobytes()}))
+    bad_points = np.zeros((2, 3), np.float32)
+    bad_points[1, 2] = np.inf
+    with pytest.raises(wire.WireError, match="non-finite"):
+        wire.decode(tamper("scan_f32", points={"nd": "<f4", "shape": [2, 3], "data": bad_points.tobytes()},
+                           times={"nd": "<u2", "shape": [2], "data": b"\x00" * 4}))
+
+
+def test_caps_are_checked_before_allocation() -> None:
+    limits = wire.Limits(max_points=100, max_detections=1, max_pixels=16)
+    with pytest.raises(wire.WireError, match="rows"):
+        wire.decode(valid_messages()["scan_f32"], limits=limits)
+    with pytest.raises(wire.WireError, match="rows"):
+        wire.decode(valid_messages()["detections"], limits=limits)
+    # the packed blob is small, but its declared 500 points are not
+    scan = wire.decode(valid_messages()["scan_q16z"], expect=wire.Scan, limits=limits)
+    with pytest.raises(wire.WireError, match="at most 100"):
+        scan.cloud(limits)
+    frame = wire.decode(valid_messages()["frame"], expect=wire.Frame)
+    with pytest.raises(wire.WireError, match="pixels"):
+        frame.check_size(limits)
+    with pytest.raises(wire.WireError, match="bytes"):
+        wire.decode(b"\x00" * 2000, limits=wire.Limits(max_bytes=1000))
+
+
+def test_q16z_declared_size_is_checked_before_decompressing() -> None:
+    bomb = zstandard.ZstdCompressor(level=19).compress(b"\x00" * (64 << 20))  # 64 MiB of zeros, ~2 kB
+    assert len(bomb) < 10_000
+    with pytest.raises(CodingError, match="declares"):
+        decode_q16z(bomb, 10, np.zeros(3), 0.01)
+    no_size = zstandard.ZstdCompressor(write_content_size=False).compress(b"\x00" * 60)
+    with pytest.raises(CodingError, match="declares"):
+        decode_q16z(no_size, 10, np.zeros(3), 0.01)
+    origin, step, blob = encode_q16z(np.zeros((10, 3)), 0.01)
+    with pytest.raises(CodingError, match="declares"):
+        decode_q16z(blob, 11, origin, step)
+    assert decode_q16z(blob, 10, origin, step)[0].shape == (10, 3)
+
+
+def test_detections_arrays_of_unequal_length_are_refused() -> None:
+    with pytest.raises(wire.WireError, match="2 boxes, 1 scores"):
+        wire.decode(tamper("detections", scores={"nd": "<f4", "shape": [1], "data": b"\x00" * 4}))
+
+
+def test_version_1_messages_are_still_read() -> None:
+    obj = msgpack.unpackb(valid_messages()["ack"], raw=False)
+    for new in ("epoch", "edge"):
+        del obj[new]
+    obj["v"] = 1
+    ack = wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.ScanAck)
+    assert ack.epoch == 0 and ack.edge == ""
+    with pytest.raises(wire.WireError, match="codec version"):
+        wire.decode(tamper("ack", v=3))
+
+
+def test_times_survive_the_u16_coding() -> None:
+    t = np.sort(np.random.default_rng(1).uniform(5.0, 5.1, 1000))
+    q, span = times_to_u16(t)
+    back = times_from_u16(q, span) + t.min()
+    assert np.abs(back - t).max() <= span / 65535 / 2 + 1e-12
+    assert times_to_u16(np.full(5, 3.0))[1] == 0.0  # no spread: no times
