@@ -27,9 +27,9 @@ from typing import Protocol
 import numpy as np
 import zenoh
 
+from zoffload.mapping import voxel, voxelset
 from zoffload.mapping.export import write_point_cloud
 from zoffload.mapping.mapper import Registration, RobotMapper, load_kiss_icp, mapper_voxel_size
-from zoffload.mapping.voxel import warmup
 from zoffload.protocol import wire
 from zoffload.protocol.intake import decode_from_robot
 from zoffload.protocol.keys import Keys
@@ -72,7 +72,8 @@ class MapperRecipe:
 
     def warm_up(self) -> None:
         # Compile the map kernels and load KISS-ICP now, not while the first scans queue up
-        warmup()
+        voxel.warmup()
+        voxelset.warmup()
         load_kiss_icp()
 
     def __call__(self, scan: wire.Scan) -> RobotMapper:

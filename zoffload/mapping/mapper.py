@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from zoffload.mapping.se3 import se3_power
-from zoffload.mapping.voxel import VoxelSet
+from zoffload.mapping.voxelset import VoxelSet
 
 
 @dataclass(frozen=True)

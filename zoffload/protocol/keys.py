@@ -26,12 +26,12 @@ from __future__ import annotations
 import re
 
 DEFAULT_NAMESPACE = "zoffload"
-_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
+ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # one key chunk; at most 64 characters
 
 
 def check_id(value: str, what: str = "id") -> str:
     """Return ``value`` if it is a valid single key chunk, else raise ``ValueError``."""
-    if not _ID.match(value):
+    if not ID.match(value):
         raise ValueError(
             f"invalid {what} {value!r}: use letters, digits, '_', '-' or '.' (it becomes one "
             "Zenoh key chunk)"
@@ -102,7 +102,7 @@ class Keys:
         """The robot id in a data or control key of this namespace, or None if it is not one."""
         parts = str(key).split("/")
         if len(parts) == 4 and parts[0] == self.ns and parts[1] in ("data", "ctrl"):
-            return parts[2] if _ID.match(parts[2]) else None
+            return parts[2] if ID.match(parts[2]) else None
         return None
 
     def last_chunk(self, key: str) -> str:

@@ -38,6 +38,7 @@ from zoffload.robot.frames import FRAME_FIELDS, FallbackRules, FrameBook
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.sensor import FrameSource, Reading, SensorThread
 from zoffload.runtime.config import RobotSettings
+from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.monitor import RaplMonitor, ResourceMonitor
 from zoffload.runtime.session import has_subscribers, undeclare
@@ -82,6 +83,7 @@ class CameraOffloader:
         self.opts = options
         self.stop = stop
         self.book = FrameBook(strategy, rules)
+        self.drops = Drops(log)
         self.camera = SensorThread(source, options.fps, "once", options.max_frames, name="camera")
         self._lock = threading.RLock()
         self._local_slot: Reading | None = None
@@ -101,7 +103,8 @@ class CameraOffloader:
         presence.subscribe(self._on_edges)
         with self._lock:
             self.book.edge_present = presence.any
-        self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id), self._on_result)
+        self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id),
+                                                   self.drops.guard(self._on_result, "detections"))
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
         ping = self.keys.ping(self.opts.robot_id)
@@ -136,7 +139,10 @@ class CameraOffloader:
         except wire.WireError as exc:
             with self._lock:
                 self.book.counters["malformed_results"] += 1
-            log.warning("dropped malformed detections: %s", exc)
+            self.drops.drop("malformed_detections", str(exc))
+            return
+        if msg.robot != self.opts.robot_id:
+            self.drops.drop("foreign_detections", f"detections for robot {msg.robot!r}")
             return
         keep = msg.classes == 0
         with self._lock:

@@ -13,7 +13,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import ID, Keys
+from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.robot.presence")
@@ -30,6 +31,7 @@ class EdgePresence:
         self._lock = threading.Lock()
         self._seen = threading.Event()
         self._sub: zenoh.Subscriber | None = None
+        self.drops = Drops(log)
 
     def subscribe(self, listener: Listener) -> None:
         """Call ``listener`` on every change (from a Zenoh callback thread: keep it short)."""
@@ -39,7 +41,7 @@ class EdgePresence:
     def start(self, session: zenoh.Session) -> None:
         # history=True: tokens declared before this subscriber count as present at once
         self._sub = session.liveliness().declare_subscriber(
-            self.keys.any_edge_alive(), self._on_token, history=True)
+            self.keys.any_edge_alive(), self.drops.guard(self._on_token, "edge token"), history=True)
 
     def stop(self) -> None:
         undeclare(self._sub)
@@ -47,6 +49,9 @@ class EdgePresence:
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         edge = self.keys.last_chunk(str(sample.key_expr))
+        if not ID.match(edge):
+            self.drops.drop("bad_token", f"edge token {str(sample.key_expr)[:100]!r}")
+            return
         present = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             if present:

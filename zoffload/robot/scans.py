@@ -35,6 +35,7 @@ from zoffload.robot.ledger import RECORD_FIELDS, ScanLedger
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.sensor import Reading, SensorThread
 from zoffload.runtime.config import RobotSettings
+from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.session import undeclare
 from zoffload.sources import ScanSource, open_scan_source
@@ -70,6 +71,7 @@ class ScanStreamer:
         self.opts = options
         self.stop = stop
         self.ledger = ScanLedger()
+        self.drops = Drops(log)
         self._lock = threading.Lock()  # the ack callback and the loop share the ledger
         self.voxel = self.policy.reset()
         self.presence: EdgePresence | None = None
@@ -81,7 +83,8 @@ class ScanStreamer:
         warmup()  # compile the voxel kernel before the first scan, not during it
         self.presence = presence
         robot = self.opts.robot_id
-        self._ack_sub = session.declare_subscriber(self.keys.scan_ack(robot), self._on_ack)
+        self._ack_sub = session.declare_subscriber(self.keys.scan_ack(robot),
+                                                   self.drops.guard(self._on_ack, "ack"))
         # BLOCK_FIRST: on a congested link the first scan waits for room (the loop blocks; the
         # sensor's newer scans are dropped at source and counted) and others are dropped whole.
         # With DROP every fragment of a large scan gets only 50 ms to find room, so on a narrow
@@ -100,9 +103,15 @@ class ScanStreamer:
         try:
             ack = wire.decode(sample.payload.to_bytes(), expect=wire.ScanAck)
         except wire.WireError as exc:
-            with self._lock:
-                self.ledger.counters["malformed_acks"] += 1
-            log.warning("dropped malformed ack: %s", exc)
+            self.drops.drop("malformed_ack", str(exc))
+            return
+        if ack.robot != self.opts.robot_id:
+            self.drops.drop("foreign_ack", f"an ack for robot {ack.robot!r}")
+            return
+        # Answers come from an edge that is present (an ACL'd router lets only edge identities put
+        # acks; without one, a forged ack from nowhere is refused here at least)
+        if ack.edge and self.presence is not None and ack.edge not in self.presence.edges:
+            self.drops.drop("foreign_ack", f"ack from {ack.edge!r}, not a present edge")
             return
         with self._lock:
             self.ledger.on_ack(ack, recv)
@@ -251,6 +260,7 @@ class ScanStreamer:
                 "balanced": self.ledger.balanced(),
                 "dropped_source": dict(self.ledger.dropped_source),
                 "other": {k: v for k, v in self.ledger.counters.items() if k not in balance},
+                "drops": self.drops.snapshot(),
             }
         sent = [r for r in recs if "bytes" in r]
         acked = [r for r in recs if r.get("status") == "acked"]

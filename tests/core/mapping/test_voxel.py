@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zoffload.mapping.voxel import VoxelSet, voxel_downsample, voxel_downsample_counts
+from zoffload.mapping.voxel import voxel_downsample, voxel_downsample_counts
+from zoffload.mapping.voxelset import VoxelSet
 from zoffload.sources.kitti import read_kitti_bin
 
 
