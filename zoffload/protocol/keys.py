@@ -9,6 +9,9 @@ key                                   primitive   payload
 ``<ns>/data/<robot>/scan_ack``        pub/sub     ``wire.ScanAck`` edge → robot, one per scan
 ``<ns>/data/<robot>/frame``           pub/sub     ``wire.Frame`` robot → edge detector
 ``<ns>/data/<robot>/detections``      pub/sub     ``wire.Detections`` edge → robot, one per frame
+``<ns>/data/<robot>/checkpoint``      pub/sub     ``wire.Checkpoint`` edge → robot, every few scans
+``<ns>/ctrl/<robot>/attach/<edge>``   queryable   ``wire.Attach`` → ``wire.AttachReply`` (edge)
+``<ns>/view/<robot>/preview``         pub/sub     ``wire.Preview`` robot → viewers, while one listens
 ``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
 ``<ns>/ctrl/<robot>/ping``            queryable   ``wire.Pong`` answered by the edge (liveness RTT)
 ``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz
@@ -77,6 +80,23 @@ class Keys:
     def all_pings(self) -> str:
         return f"{self.ns}/ctrl/*/ping"
 
+    def checkpoint(self, robot: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/checkpoint"
+
+    # Attach: robot N asks edge E to map it (queryable held by E for every robot)
+    def attach(self, robot: str, edge: str) -> str:
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/attach/{check_id(edge, 'edge id')}"
+
+    def all_attaches(self, edge: str) -> str:
+        return f"{self.ns}/ctrl/*/attach/{check_id(edge, 'edge id')}"
+
+    # Viewers
+    def preview(self, robot: str) -> str:
+        return f"{self.ns}/view/{check_id(robot, 'robot id')}/preview"
+
+    def all_previews(self) -> str:
+        return f"{self.ns}/view/*/preview"
+
     # Status
     def robot_status(self, robot: str) -> str:
         return f"{self.ns}/status/{check_id(robot, 'robot id')}"
@@ -101,7 +121,7 @@ class Keys:
     def robot_of(self, key: str) -> str | None:
         """The robot id in a data or control key of this namespace, or None if it is not one."""
         parts = str(key).split("/")
-        if len(parts) == 4 and parts[0] == self.ns and parts[1] in ("data", "ctrl"):
+        if len(parts) in (4, 5) and parts[0] == self.ns and parts[1] in ("data", "ctrl", "view"):
             return parts[2] if ID.match(parts[2]) else None
         return None
 

@@ -341,9 +341,26 @@ class AttachReply(Message):
     capacity: int = _num(0, lo=0, hi=1e6)  # robots it takes at most
 
 
+@dataclass(frozen=True)
+class Preview(Message):
+    """A camera frame as the robot saw it, for viewers (a few per second, only while one listens):
+    a small JPEG, where it was detected and the person boxes found, in the JPEG's pixels."""
+
+    TYPE: ClassVar[str] = "preview"
+    robot: str = _text(ident=True)
+    seq: int = _num(bounds=SEQ)
+    stamp: float = _num(bounds=STAMP)  # robot wall clock when the result came
+    side: str = _text(choices=("local", "edge"))
+    width: int = _num(lo=1, hi=4096)
+    height: int = _num(lo=1, hi=4096)
+    jpeg: np.ndarray = _array(ArraySpec("|u1", (-1,)))
+    boxes: np.ndarray = _array(ArraySpec("<f4", (-1, 4), cap="max_detections"))
+    scores: np.ndarray = _array(ArraySpec("<f4", (-1,), cap="max_detections"))
+
+
 MESSAGES: dict[str, type[Message]] = {
     m.TYPE: m for m in (Scan, ScanAck, Frame, Detections, MapReply, Pong, Status, Checkpoint, Attach,
-                        AttachReply)
+                        AttachReply, Preview)
 }
 M = TypeVar("M", bound=Message)
 
