@@ -1,6 +1,9 @@
 """Voxel grid: zoffload's kernel vs Open3D ``voxel_down_sample`` on a real HDL-64 scan.
 
-Open3D's time includes the numpy -> ``Vector3dVector`` conversion and back, as a robot pays it.
+Open3D's time includes the numpy -> ``Vector3dVector`` conversion and back, as a robot pays it;
+ours is ``voxel_downsample`` (a new centroid array) and, as the robot runs it, the grid pass alone
+(``VoxelGrid.run``: sums in scratch buffers, invalid points skipped, read straight into the
+payload). Wall times (Open3D may use several threads).
 Run: python -m benchmarks.bench_voxel
 """
 
@@ -12,7 +15,7 @@ import time
 import numpy as np
 
 from benchmarks.common import header, kitti_scans, median_ms
-from zoffload.mapping.voxel import voxel_downsample, warmup
+from zoffload.mapping.voxel import VoxelGrid, voxel_downsample, warmup
 
 
 def open3d_grid(points: np.ndarray, v: float) -> np.ndarray:
@@ -35,16 +38,20 @@ def main() -> None:
     pts = kitti_scans(1)[0]
     warmup()
     print(f"scan: {len(pts):,} points")
-    print(f"{'voxel':>6} | {'zoffload ms':>11} | {'open3d ms':>9} | {'speed-up':>8} | voxels ours/o3d")
-    for v in (0.05, 0.2, 0.5):
+    grid = VoxelGrid()
+    print(f"{'voxel':>6} | {'zoffload ms':>11} | {'grid pass':>9} | {'open3d ms':>9} | {'speed-up':>8} | "
+          "voxels ours/o3d")
+    for v in (0.02, 0.05, 0.2, 0.5):
         # Timed in separate blocks with a pause: Open3D's OpenMP threads keep spinning for a while
         # after each call and would steal the core from whatever runs right after them.
         time.sleep(0.5)
         ours = median_ms(functools.partial(voxel_downsample, pts, v), repeat=50)
+        robot = median_ms(functools.partial(grid.run, pts, v, skip_invalid=True), repeat=50)
         o3d_ms = median_ms(functools.partial(open3d_grid, pts, v), repeat=50)
         n_ours, n_o3d = len(voxel_downsample(pts, v)), len(open3d_grid(pts, v))
         ratio = o3d_ms / ours
-        print(f"{v:>6.2f} | {ours:>11.2f} | {o3d_ms:>9.2f} | {ratio:>7.1f}x | {n_ours:,}/{n_o3d:,}")
+        print(f"{v:>6.2f} | {ours:>11.2f} | {robot:>9.2f} | {o3d_ms:>9.2f} | {ratio:>7.1f}x | "
+              f"{n_ours:,}/{n_o3d:,}")
     u = median_ms(lambda: unique_grid(pts, 0.05), repeat=5, warmup=1)
     print(f"plain np.unique grid at 0.05: {u:.1f} ms")
     print("(voxel counts differ slightly: Open3D anchors its grid at the cloud's min bound - v/2,"

@@ -40,3 +40,29 @@ def models_dir() -> Path:
     if not (MODELS / "nanodet_m_320.onnx").is_file():
         pytest.skip(f"detector models not found at {MODELS} (set ZOFFLOAD_DATA)")
     return MODELS
+
+
+_EXIT = {"status": 0}
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    _EXIT["status"] = int(exitstatus)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """A test that leaves a Zenoh session open (say, after a failed assertion) leaves Zenoh's
+    callback thread behind, and the interpreter would wait for it for ever: name the threads and
+    leave with pytest's own exit status instead of hanging CI."""
+    import threading
+    import time
+
+    deadline = time.monotonic() + 10
+    lingering = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
+    for t in lingering:
+        t.join(max(0.0, deadline - time.monotonic()))
+    lingering = [t for t in lingering if t.is_alive()]
+    if lingering:
+        print(f"\nconftest: {len(lingering)} non-daemon thread(s) still running at exit "
+              f"({', '.join(t.name for t in lingering)}): a test left a session open; exiting anyway",
+              flush=True)
+        os._exit(_EXIT["status"])

@@ -1,6 +1,7 @@
 """The package's layers and the one-way direction of imports between them.
 
-    protocol, mapping, policy, detect, sources   the core: pure computation and data
+    protocol, mapping, policy, detect, sources,  the core: pure computation and data
+    ros2
         ^ runtime                                process plumbing: settings, sessions, monitors
             ^ robot, edge                        the two daemons (never each other)
                 ^ lab                            demo, experiments, link emulator, evaluation
@@ -15,10 +16,11 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[2] / "zoffload"
-RANK = {"protocol": 0, "mapping": 0, "policy": 0, "detect": 0, "sources": 0, "runtime": 1, "robot": 2,
-        "edge": 2, "lab": 3, "cli": 4}
+RANK = {"protocol": 0, "mapping": 0, "policy": 0, "detect": 0, "sources": 0, "ros2": 0, "runtime": 1,
+        "robot": 2, "edge": 2, "lab": 3, "cli": 4}
 # Within the core, the few directions allowed (a cycle there would make the layers meaningless)
-CORE = {"policy": {"mapping"}, "mapping": set(), "protocol": set(), "detect": set(), "sources": set()}
+CORE = {"policy": {"mapping"}, "mapping": {"protocol"}, "protocol": set(), "detect": set(),
+        "sources": {"ros2"}, "ros2": set()}
 
 
 def layer(module: str) -> str:

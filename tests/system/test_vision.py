@@ -44,9 +44,10 @@ def _frames(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.parametrize("strategy", ["edge", "dispatch"])
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
-                                                    models_dir: Path) -> None:
-    cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=450, reply_timeout=0.5,
+                                                    models_dir: Path, strategy: str) -> None:
+    cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy=strategy, max_frames=450, reply_timeout=0.5,
                       probe_period=0.3, resume_after=2)
     with client(free_port) as s:
         edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
@@ -79,16 +80,17 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
     during = [f for f in frames if t_kill + 0.25 < float(f["capture"]) < t_restart]
     assert during and all(f["side"] == "local" for f in during)
     after = [f for f in frames if float(f["capture"]) > falls[0]["end"]]
-    assert any(f["status"] == "edge_done" for f in after)
+    if strategy == "edge":  # (ours may find the robot's own detector the sooner side by then)
+        assert any(f["status"] == "edge_done" for f in after)
     assert all(f["status"] != "pending" for f in frames)  # no frame left waiting
 
 
-def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,
-                                              models_dir: Path) -> None:
+def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,
+                                      models_dir: Path) -> None:
     with client(free_port) as s:
         edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
         try:
-            cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="dynamic", max_frames=150,
+            cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="dispatch", max_frames=150,
                               encoding="jpeg")
             robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
             wait_for(lambda: robot.p.poll() is not None
@@ -109,14 +111,14 @@ def test_dynamic_offloader_counts_every_frame(free_port: int, tmp_path: Path, co
     m = json.loads((run / "vision_metrics.json").read_text())
     b = m["balance"]
     assert m["balanced"] and b["frames_in"] == 150
-    assert b["local_done"] > 0 and b["edge_done"] > 0  # the rule tried and used both sides
+    assert b["local_done"] > 0 and b["edge_done"] > 0  # the rule measured and used both sides
     assert 0 < m["processed_pct"] <= 100
     assert m["robot_rtt_ms"] > 0 and m["edge_rtt_ms"] > 0 and m["edge_infer_ms"] > 0
     assert m["power_available"] is False or m["power_w"] is not None
     assert m["other"]["late_or_unknown_results"] >= 1 and m["other"]["malformed_results"] == 1
     assert 0 < m["ping_ms"] < 500  # the 1 Hz ping-pong to the edge's queryable answered
     frames = _frames(run)
-    jpeg_bytes = [float(f["bytes"]) for f in frames if f["side"] == "edge"]
+    jpeg_bytes = [float(f["bytes"]) for f in frames if f["side"] == "edge" and f["bytes"]]
     assert max(jpeg_bytes) < 848 * 480 * 3 / 4  # JPEG, not raw
     det = np.load(run / "detections.npz")
     assert det["counts"].sum() > 0 and len(det["seqs"]) == b["local_done"] + b["edge_done"]
@@ -148,7 +150,7 @@ def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int
             pub.put(wire.encode(f))                            # the queue and be answered "dropped"
             wait_for(lambda k=k: len(replies) == k + 1, 20, f"answer {k + 1}")  # type: ignore[misc]
         assert edge.detector is not None
-        assert edge.detector.counters["malformed"] == 1
+        assert edge.detector.drops.snapshot() == {"malformed": 1}
         assert edge.detector.counters["errors"] == 2
     by_seq = {r.seq: r for r in replies}
     assert by_seq[1].status == "error" and "expected" in by_seq[1].detail

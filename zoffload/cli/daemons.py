@@ -33,6 +33,11 @@ SESSION_SPELLINGS: dict[str, Spelling] = {
     "zenoh.shared_memory": Spelling(("--shm",)),
     "zenoh.config_file": Spelling(("-c", "--config"), "FILE"),
     "zenoh.cfg": Spelling(("--cfg",), "KEY:VALUE"),
+    "zenoh.tls_ca": Spelling(("--tls-ca",), "FILE"),
+    "zenoh.tls_cert": Spelling(("--tls-cert",), "FILE"),
+    "zenoh.tls_key": Spelling(("--tls-key",), "FILE"),
+    "zenoh.user": Spelling(("--user",), "NAME"),
+    "zenoh.password_file": Spelling(("--password-file",), "FILE"),
 }
 ROBOT_SPELLINGS: dict[str, Spelling] = {
     **SESSION_SPELLINGS,
@@ -90,6 +95,9 @@ def robot_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 def edge_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="zoffload-edge")
     _daemon_parser(p, EdgeSettings, EDGE_SPELLINGS, EDGE_ENV, f"{EDGE_ENV}MAPPER__QUEUE=4")
+    from zoffload.cli.view import add_view_flags  # here: cli.view imports this module
+
+    add_view_flags(p, "view-")
     return p
 
 
@@ -113,6 +121,10 @@ def run_robot(a: argparse.Namespace) -> int:
 def run_edge(a: argparse.Namespace) -> int:
     from zoffload.edge.server import run
 
+    if getattr(a, "view", False):
+        from zoffload.cli.view import run_edge_with_view
+
+        return run_edge_with_view(a, edge_settings(a))
     run(edge_settings(a), StopSignal().install())
     return ExitCode.OK
 

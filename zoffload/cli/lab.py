@@ -13,10 +13,12 @@ from zoffload.runtime.lifecycle import StopSignal
 
 
 def _run_demo(a: argparse.Namespace) -> int:
+    from zoffload.cli.view import view_options
     from zoffload.lab.demo import DemoOptions, run
 
     return run(DemoOptions(duration=a.duration, scans=a.scans, out=a.out, voxel=a.voxel,
-                           replay=a.replay, trace=a.trace, camera=a.camera))
+                           replay=a.replay, trace=a.trace, camera=a.camera,
+                           view=view_options(a, "view-") if a.view else None))
 
 
 def _run_link(a: argparse.Namespace) -> int:
@@ -44,28 +46,42 @@ def _run_experiment(a: argparse.Namespace) -> int:
         row = run_scan_experiment(ScanExperiment(
             trace=a.trace, policy=a.policy, scans=a.scans, out=a.out, max_scans=a.max_scans,
             replay=a.replay, rate_hz=a.rate, seed=a.seed, coding=a.coding,
-            voxel_range=tuple(a.voxel_range) if a.voxel_range else None))
+            voxel_range=tuple(a.voxel_range) if a.voxel_range else None, repeat=a.repeat))
     except TraceError as exc:
         raise ConfigError(str(exc)) from exc
     print(summary_line(row))
     return ExitCode.OK
 
 
-def _detect_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--images", default="coco-clips",
-                   help="camera source: coco-clips[:FOLDER] (default, has ground truth), a folder or a video")
-    p.add_argument("--max-frames", type=int, default=750, help="camera frames per run (default 750 = 30 s)")
-    p.add_argument("--cpu-quota", type=float, default=0.25,
-                   help="cores the robot process may use (CFS quota; default 0.25; 0 = no quota)")
+def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
+    p.add_argument("--images", default="coco-clips@holdout" if sweep else "coco-clips",
+                   help="camera source: coco-clips[:FOLDER][@tune|@holdout] (has ground truth; @tune: the "
+                   "half of the images strategies are tuned on, @holdout: the other half, the sweep's "
+                   "default), a folder or a video")
+    p.add_argument("--max-frames", type=int, default=None if sweep else 750,
+                   help="camera frames per run (default: " + ("every frame of the source, 1250 for a half "
+                   "of coco-clips" if sweep else "750 = 30 s") + ")")
+    if sweep:
+        p.add_argument("--cpu-quotas", type=float, nargs="+", default=[0.25, 1.0],
+                       help="robot cores, one sweep per value (CFS quota; default 0.25 1.0; 0 = no quota)")
+    else:
+        p.add_argument("--cpu-quota", type=float, default=0.25,
+                       help="cores the robot process may use (CFS quota; default 0.25; 0 = no quota)")
+    p.add_argument("--repeat", type=int, default=3 if sweep else 1,
+                   help="runs of each experiment, into OUT/.../run1 ... runN; runs already complete are "
+                   f"kept, so the same command resumes (default {3 if sweep else 1})")
     p.add_argument("--encoding", choices=["bgr8", "jpeg"], default="bgr8",
                    help="frame encoding (default bgr8)")
+    p.add_argument("--edge-threads", type=int, default=1,
+                   help="inference threads of the edge's detector (default 1: robot and edge share this "
+                   "machine, and an edge on every core is slowed by whatever the robot runs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--log-level", default="WARNING")
 
 
 def _detect_kw(a: argparse.Namespace) -> dict[str, Any]:
-    return {"images": a.images, "max_frames": a.max_frames, "cpu_quota": a.cpu_quota or None,
-            "encoding": a.encoding, "seed": a.seed}
+    return {"images": a.images, "max_frames": a.max_frames, "encoding": a.encoding, "seed": a.seed,
+            "edge_threads": a.edge_threads}
 
 
 def _run_detect(a: argparse.Namespace) -> int:
@@ -80,6 +96,7 @@ def _run_detect(a: argparse.Namespace) -> int:
     except (ValueError, TraceError) as exc:
         raise ConfigError(str(exc)) from exc
     row = run_detect_experiment(DetectExperiment(trace=a.trace, strategy=a.strategy, out=a.out,
+                                                 cpu_quota=a.cpu_quota or None, repeat=a.repeat,
                                                  **_detect_kw(a)))
     print(summary_line(row))
     return ExitCode.OK
@@ -90,8 +107,9 @@ def _run_detect_sweep(a: argparse.Namespace) -> int:
 
     from zoffload.lab.detect_experiment import SWEEP_STRATEGIES, SWEEP_TRACES, run_sweep
 
-    run_sweep(Path(a.out), a.traces or SWEEP_TRACES, a.strategies or SWEEP_STRATEGIES, **_detect_kw(a))
-    print(f"sweep written to {a.out}; render it with: zoffload report {a.out}/*/*")
+    run_sweep(Path(a.out), a.traces or SWEEP_TRACES, a.strategies or SWEEP_STRATEGIES,
+              [q or None for q in a.cpu_quotas], a.repeat, **_detect_kw(a))
+    print(f"sweep written to {a.out}; render it with: zoffload report {a.out}/*/*/*/run*")
     return ExitCode.OK
 
 
@@ -99,9 +117,9 @@ def _run_report(a: argparse.Namespace) -> int:
     from pathlib import Path
 
     from zoffload.lab.eval.detect_report import is_detect_run, write_detect_report
-    from zoffload.lab.eval.report import write_report
+    from zoffload.lab.eval.report import expand_runs, write_report
 
-    folders = [Path(d) for d in a.runs]
+    folders = expand_runs([Path(d) for d in a.runs])  # a folder of run1 ... runN: its runs
     missing = [str(f) for f in folders if not (f / "results.json").is_file()]
     if missing:
         raise ConfigError(f"not experiment folders (no results.json): {', '.join(missing)}")
@@ -147,6 +165,9 @@ def add_demo(sub: Any) -> None:
                    help="also stream camera frames (default source: coco-clips, needs the models) to the "
                    "edge detector, detected on the robot or the edge frame by frame")
     d.add_argument("--log-level", default=None)
+    from zoffload.cli.view import add_view_flags
+
+    add_view_flags(d, "view-")
     d.set_defaults(func=_run_demo)
 
 
@@ -164,8 +185,10 @@ def add_experiment(sub: Any) -> None:
     es.add_argument("--replay", choices=["once", "loop", "pingpong"])
     es.add_argument("--rate", type=float, help="sensor rate in Hz (default: the source's)")
     es.add_argument("--seed", type=int, default=0)
-    es.add_argument("--coding", choices=["f32", "q16z"], default="f32",
-                    help="scan payload: float32 (default) or q16z (quantised, zstd-compressed)")
+    es.add_argument("--coding", choices=["f32", "q16z", "q16d"], default="f32",
+                    help="scan payload: float32 (default), q16z or q16d (quantised; the robot uses q16d)")
+    es.add_argument("--repeat", type=int, default=1,
+                    help="runs of the experiment, into OUT/run1 ... OUT/runN (report them with OUT/run*)")
     es.add_argument("--voxel-range", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
                     help="the scale policies' voxel range (default 0.01 0.07, a VLP-16 indoors)")
     es.add_argument("--log-level", default="WARNING")
@@ -174,17 +197,19 @@ def add_experiment(sub: Any) -> None:
     ed.add_argument("--trace", required=True,
                     help="'none' (unconstrained loopback), a shipped trace (detect-capped, "
                     "wifi-locations) or a CSV file")
-    ed.add_argument("--strategy", required=True, help="robot, edge, ratio:R, thesis or dynamic")
+    ed.add_argument("--strategy", required=True,
+                    help="robot, edge, ratio:R, thesis, dynamic or dispatch (ours)")
     ed.add_argument("--out", required=True, help="results folder of this run")
     _detect_arguments(ed)
     ed.set_defaults(func=_run_detect)
-    sw = exs.add_parser("detect-sweep", help="the thesis' grid: strategies x links, one folder each")
+    sw = exs.add_parser("detect-sweep", help="the thesis' grid: strategies x links x CPU quotas x repeats")
     sw.add_argument("--out", required=True, help="sweep folder (one sub-folder per link and strategy)")
-    sw.add_argument("--traces", nargs="+", default=None, help="default: none detect-capped wifi-locations")
+    sw.add_argument("--traces", nargs="+", default=None,
+                    help="default: none detect-capped wifi-locations mmwave-blockage (never tuned on)")
     sw.add_argument("--strategies", nargs="+", default=None,
-                    help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic, dynamic@jpeg "
+                    help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic, dispatch "
                     "(S@jpeg: strategy S with JPEG frames)")
-    _detect_arguments(sw)
+    _detect_arguments(sw, sweep=True)
     sw.set_defaults(func=_run_detect_sweep)
 
 

@@ -16,7 +16,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from zoffload import __version__
-from zoffload.cli import daemons, lab
+from zoffload.cli import daemons, hardening, lab, view
 from zoffload.cli.daemons import edge_parser, robot_parser, run_edge, run_robot
 from zoffload.detect.models import ModelError
 from zoffload.runtime.errors import ConfigError, ExitCode, ZenohSessionError
@@ -59,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"zoffload {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     for add in (lab.add_demo, daemons.add_robot, daemons.add_edge, lab.add_experiment, lab.add_report,
-                lab.add_train_policy, lab.add_link, daemons.add_router):
+                lab.add_train_policy, lab.add_link, daemons.add_router, view.add_view, hardening.add_certs,
+                hardening.add_soak):
         add(sub)
     return p
 

@@ -24,11 +24,13 @@ class ModelError(Exception):
 
 @dataclass(frozen=True)
 class ModelSpec:
-    """One supported detector: its file, input size, decoder and pinned checksum."""
+    """One supported detector family: its default file (with that file's input size and pinned
+    checksum) and its decoder. Another export of the family, at any input size, loads from a
+    configured path: the detector reads the size from the graph (detector.py)."""
 
     name: str
     file: str
-    size: int  # square network input [px]
+    size: int  # the default file's square network input [px]; documentation only
     decoder: str  # "gfl" (NanoDet / PicoDet heads) or "yolox"
     sha256: str
     release: str  # where the official weights are published (for the user to pick a URL)

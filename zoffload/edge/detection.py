@@ -1,14 +1,18 @@
-"""The edge's object-detector service: every robot's camera frames, one heavier ONNX model.
+"""The edge's object-detector service: every admitted robot's camera frames, one heavier ONNX model.
 
 Inputs:  ``<ns>/data/*/frame`` (wire.Frame).
 Outputs: ``<ns>/data/<robot>/detections`` (wire.Detections, one per frame: also for frames it
-         could not decode or had to drop, so no robot waits for an answer that will not come).
+         could not decode or had to drop, so no robot waits for an answer that will not come;
+         robots not admitted get an ``error`` answer saying so, rate-limited).
 
-The Zenoh callback only decodes and queues; one inference thread serves all robots. When frames
-queue up it takes up to ``batch`` of them in one pass, oldest first across robots, and serves them
-back to back (the three shipped models have a fixed batch dimension of 1, so a pass is a loop, not
-one tensor); every answer says how many frames shared its pass. Each robot keeps at most ``queue``
-waiting frames; the oldest is answered ``dropped`` when a newer one comes.
+The Zenoh callback only decodes, checks sizes and queues; one inference thread serves all robots.
+Sizes are checked before any pixel is decoded: the declared width x height against the pixel cap,
+a raw frame's byte count, and a JPEG's own frame header (read from its SOF marker) against the
+declared size, so a small JPEG claiming a huge image never reaches the decoder. When frames queue
+up the thread takes up to ``batch`` of them in one pass, oldest first across robots, and serves
+them back to back (the three shipped models have a fixed batch dimension of 1, so a pass is a
+loop, not one tensor); every answer says how many frames shared its pass. Each robot keeps at most
+``queue`` waiting frames; the oldest is answered ``dropped`` when a newer one comes.
 """
 
 from __future__ import annotations
@@ -23,11 +27,79 @@ import numpy as np
 import zenoh
 
 from zoffload.detect.detector import Detections, Detector
+from zoffload.edge.admission import Admission
 from zoffload.protocol import wire
-from zoffload.protocol.intake import decode_from_robot
+from zoffload.protocol.intake import decode_from_robot, robot_in_key
 from zoffload.protocol.keys import Keys
+from zoffload.runtime.drops import Drops
+from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.detection")
+
+# Start-of-frame markers (baseline, extended, progressive, lossless; Huffman and arithmetic)
+_SOF = frozenset((0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF))
+_MAX_MARKERS = 10_000  # segments and fill bytes read before the frame header must have come
+
+
+def jpeg_size(data: bytes | memoryview) -> tuple[int, int]:
+    """(width, height) from a JPEG's frame header, read without decoding; ValueError if there is
+    no well-formed header before the image data."""
+    b = memoryview(data)
+    n = len(b)
+    if n < 4 or b[0] != 0xFF or b[1] != 0xD8:
+        raise ValueError("not a JPEG (no start-of-image marker)")
+    i = 2
+    for _ in range(_MAX_MARKERS):
+        if i + 4 > n:
+            break
+        if b[i] != 0xFF:
+            raise ValueError(f"corrupt JPEG: no marker at byte {i}")
+        marker = b[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header came first
+            break
+        length = (b[i + 2] << 8) | b[i + 3]
+        if length < 2:
+            raise ValueError(f"corrupt JPEG: segment length {length} at byte {i}")
+        if marker in _SOF:
+            if i + 9 > n or length < 8:
+                break
+            height = (b[i + 5] << 8) | b[i + 6]
+            width = (b[i + 7] << 8) | b[i + 8]
+            return width, height
+        i += 2 + length
+    raise ValueError("JPEG without a frame header")
+
+
+def check_frame(frame: wire.Frame, limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
+    """ValueError unless the frame's pixels can be decoded within ``limits`` as declared."""
+    frame.check_size(limits)  # declared size within the pixel cap; raw: exactly that many bytes
+    if frame.encoding == "jpeg":
+        width, height = jpeg_size(frame.data.data)
+        if (width, height) != (frame.width, frame.height):
+            raise ValueError(f"JPEG header says {width}x{height}, the frame {frame.width}x{frame.height}")
+
+
+def decode_image(frame: wire.Frame, limits: wire.Limits = wire.DEFAULT_LIMITS) -> np.ndarray:
+    """The frame's BGR pixels; ValueError for a wrong size or an undecodable JPEG."""
+    import cv2
+
+    if frame.encoding not in ("bgr8", "jpeg"):
+        raise ValueError(f"unknown encoding {frame.encoding!r} (bgr8, jpeg)")
+    check_frame(frame, limits)
+    if frame.encoding == "bgr8":
+        return frame.data.reshape(frame.height, frame.width, 3)
+    img = cv2.imdecode(frame.data, cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError("undecodable JPEG")
+    if img.shape[:2] != (frame.height, frame.width):
+        raise ValueError(f"JPEG of {img.shape[1]}x{img.shape[0]}, header says {frame.width}x{frame.height}")
+    return img
 
 
 @dataclass
@@ -36,44 +108,24 @@ class _Pending:
     arrival: float
 
 
-def decode_image(frame: wire.Frame) -> np.ndarray:
-    """The frame's BGR pixels; ValueError for a wrong size or an undecodable JPEG."""
-    import cv2
-
-    if frame.width <= 0 or frame.height <= 0:
-        raise ValueError(f"bad frame size {frame.width}x{frame.height}")
-    if frame.encoding == "bgr8":
-        want = frame.width * frame.height * 3
-        if frame.data.size != want:
-            raise ValueError(f"bgr8 frame of {frame.data.size} bytes, {frame.width}x{frame.height}x3 = "
-                             f"{want} expected")
-        return frame.data.reshape(frame.height, frame.width, 3)
-    if frame.encoding == "jpeg":
-        img = cv2.imdecode(frame.data, cv2.IMREAD_COLOR)
-        if img is None:
-            raise ValueError("undecodable JPEG")
-        if img.shape[:2] != (frame.height, frame.width):
-            raise ValueError(f"JPEG of {img.shape[1]}x{img.shape[0]}, header says "
-                             f"{frame.width}x{frame.height}")
-        return img
-    raise ValueError(f"unknown encoding {frame.encoding!r} (bgr8, jpeg)")
-
-
 class DetectorService:
     name = "detector"
 
-    def __init__(self, detector: Detector, keys: Keys, edge_id: str, queue: int = 2,
-                 batch: int = 4) -> None:
+    def __init__(self, detector: Detector, keys: Keys, edge_id: str, queue: int = 2, batch: int = 4,
+                 admission: Admission | None = None, limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
         self.detector = detector
         self.keys = keys
         self.edge_id = edge_id
         self.queue_len = queue
         self.batch = batch
+        self.admission = admission or Admission()
+        self.limits = limits
         self.counters: Counter[str] = Counter()
+        self.drops = Drops(log)
         self.infer_times: deque[float] = deque(maxlen=100)
         self._pending: dict[str, deque[_Pending]] = {}
         self._pubs: dict[str, zenoh.Publisher] = {}
-        self._cond = threading.Condition()
+        self._cond = threading.Condition()  # pending, publishers and counters
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="detector", daemon=True)
         self._session: zenoh.Session | None = None
@@ -82,15 +134,15 @@ class DetectorService:
     def start(self, session: zenoh.Session) -> None:
         self.detector.detect(np.zeros((64, 64, 3), np.uint8))  # first-run allocation, not on a frame
         self._session = session
-        self._sub = session.declare_subscriber(self.keys.all_frames(), self._on_frame)
+        self._sub = session.declare_subscriber(self.keys.all_frames(),
+                                               self.drops.guard(self._on_frame, "frame"))
         self._thread.start()
         log.info("detector %s serving %s", self.detector.name, self.keys.all_frames())
 
     def stop(self) -> None:
         # No new frames: one queued after the thread stops would never be answered
-        if self._sub is not None:
-            self._sub.undeclare()
-            self._sub = None
+        undeclare(self._sub)
+        self._sub = None
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -98,6 +150,7 @@ class DetectorService:
             self._thread.join(timeout=5)
 
     def _pub(self, robot: str) -> zenoh.Publisher:
+        """The robot's detections publisher (called with the lock held, for admitted robots)."""
         pub = self._pubs.get(robot)
         if pub is None:
             assert self._session is not None, "frames arrive only after start()"
@@ -106,23 +159,55 @@ class DetectorService:
             self._pubs[robot] = pub
         return pub
 
+    def _count(self, what: str) -> None:
+        with self._cond:
+            self.counters[what] += 1
+
     # Zenoh callback: decode, check, queue
     def _on_frame(self, sample: zenoh.Sample) -> None:
         arrival = time.monotonic()
-        frame = decode_from_robot(sample, wire.Frame, self.keys, self.counters, log, "frame")
+        self._count("samples")
+        robot = robot_in_key(sample, self.keys, self.drops, "frame")
+        if robot is None:
+            return
+        if not self.admission.admit(robot, arrival):
+            self._refuse(sample, robot)
+            return
+        frame = decode_from_robot(sample, wire.Frame, robot, self.drops, "frame", self.limits)
         if frame is None:
             return
-        self.counters["received"] += 1
+        self._count("received")
+        p = _Pending(frame, arrival)
+        try:
+            check_frame(frame, self.limits)  # before it waits in a queue, let alone reaches a decoder
+        except ValueError as exc:
+            self._count("errors")
+            self._reply(p, "error", detail=str(exc)[:200])
+            return
         dropped = None
         with self._cond:
             q = self._pending.setdefault(frame.robot, deque())
-            q.append(_Pending(frame, arrival))
+            q.append(p)
             if len(q) > self.queue_len:
                 dropped = q.popleft()
+                self.counters["dropped"] += 1
             self._cond.notify()
         if dropped is not None:
-            self.counters["dropped"] += 1
             self._reply(dropped, "dropped", detail="edge detector overloaded")
+
+    def _refuse(self, sample: zenoh.Sample, robot: str) -> None:
+        why = self.admission.why_refused(robot)
+        self.drops.drop("refused", why)
+        if self._session is None or not self.admission.answer_refusal():
+            return
+        try:
+            frame = wire.decode(sample.payload.to_bytes(), expect=wire.Frame, limits=self.limits)
+        except wire.WireError:
+            return
+        if frame.robot == robot:  # Detections has no "refused" status: an error that says so
+            self._session.put(self.keys.detections(robot), wire.encode(self._answer(frame, "error",
+                                                                                    f"refused: {why}")),
+                              congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def _take(self) -> list[_Pending]:
         """Up to ``batch`` queued frames, oldest first across robots."""
@@ -145,35 +230,65 @@ class DetectorService:
     def _serve(self, p: _Pending, batch: int) -> None:
         start = time.monotonic()
         try:
-            img = decode_image(p.frame)
+            img = decode_image(p.frame, self.limits)
             det = self.detector.detect(img)
         except Exception as exc:  # a bad frame is answered and counted, the service carries on
-            self.counters["errors"] += 1
+            self._count("errors")
             log.warning("robot %s frame %d: %s", p.frame.robot, p.frame.seq, exc)
             self._reply(p, "error", detail=str(exc)[:200], queue_time=start - p.arrival)
             return
-        self.counters["served"] += 1
+        self._count("served")
         self.infer_times.append(self.detector.last_infer_time)
         self._reply(p, "ok", queue_time=start - p.arrival, infer_time=time.monotonic() - start,
                     batch=batch, det=det)
 
-    def _reply(self, p: _Pending, status: str, detail: str = "", queue_time: float = float("nan"),
-               infer_time: float = float("nan"), batch: int = 0, det: Detections | None = None) -> None:
-        msg = wire.Detections(
-            robot=p.frame.robot, seq=p.frame.seq, send_stamp=p.frame.send_stamp, edge=self.edge_id,
-            model=self.detector.name, status=status, infer_time=infer_time, queue_time=queue_time,
-            batch=batch, detail=detail,
+    def _answer(self, frame: wire.Frame, status: str, detail: str = "", queue_time: float = float("nan"),
+                infer_time: float = float("nan"), batch: int = 0,
+                det: Detections | None = None) -> wire.Detections:
+        def duration(x: float) -> float:  # what the codec accepts; NaN = not measured
+            return x if 0.0 <= x <= 3600.0 else float("nan")
+
+        return wire.Detections(
+            robot=frame.robot, seq=frame.seq, send_stamp=frame.send_stamp, edge=self.edge_id,
+            model=self.detector.name, status=status, infer_time=duration(infer_time),
+            queue_time=duration(queue_time), batch=batch, detail=detail,
             boxes=det.boxes if det is not None else np.zeros((0, 4), np.float32),
             scores=det.scores if det is not None else np.zeros(0, np.float32),
             classes=det.classes if det is not None else np.zeros(0, np.int32),
         )
+
+    def _reply(self, p: _Pending, status: str, detail: str = "", queue_time: float = float("nan"),
+               infer_time: float = float("nan"), batch: int = 0, det: Detections | None = None) -> None:
+        msg = self._answer(p.frame, status, detail, queue_time, infer_time, batch, det)
         try:
-            self._pub(p.frame.robot).put(wire.encode(msg))
+            if not self.admission.is_admitted(p.frame.robot):  # evicted meanwhile: no publisher again
+                assert self._session is not None
+                self._session.put(self.keys.detections(p.frame.robot), wire.encode(msg),
+                                  congestion_control=zenoh.CongestionControl.DROP, express=True)
+                return
+            with self._cond:
+                pub = self._pub(p.frame.robot)
+            pub.put(wire.encode(msg))
         except Exception as exc:  # session closing
             log.debug("detections not published: %s", exc)
 
+    # Eviction (the server's housekeeping)
+    def evict(self, robot: str) -> None:
+        """Answer the robot's waiting frames as dropped and forget it."""
+        with self._cond:
+            waiting = list(self._pending.pop(robot, ()))
+        for p in waiting:
+            self._reply(p, "dropped", detail="robot evicted from the edge")
+        with self._cond:
+            pub = self._pubs.pop(robot, None)
+        undeclare(pub)
+
     def status(self) -> dict[str, float]:
-        values = {f"detector.{k}": float(v) for k, v in self.counters.items()}
+        with self._cond:
+            values = {f"detector.{k}": float(v) for k, v in self.counters.items()}
+        drops = self.drops.snapshot()
+        values.update({f"detector.drop.{k}": float(v) for k, v in drops.items()})
+        values["detector.drops"] = float(sum(drops.values()))
         if self.infer_times:
             values["detector.infer_ms"] = float(np.mean(self.infer_times) * 1e3)
         return values

@@ -2,12 +2,19 @@
 
 Services (each in its own module, all on the server's session):
   mapping   ``<ns>/data/*/scan`` → ``<ns>/data/<robot>/scan_ack``, ``<ns>/ctrl/<robot>/map``
-            (edge/mapping.py: one KISS-ICP per robot, maps exported to ``map_dir`` on shutdown).
+            (edge/mapping.py: one bounded KISS-ICP per robot on a fixed pool of workers, maps
+            exported to ``map_dir`` on eviction and shutdown).
   detector  ``<ns>/data/*/frame`` → ``<ns>/data/<robot>/detections`` (edge/detection.py), when the
             configured model can be found (or ``detector.enabled: true``, then a missing model is
             fatal).
 The server itself: liveliness ``<ns>/alive/edge/<edge>``, ``<ns>/ctrl/<robot>/ping`` (wire.Pong),
 ``<ns>/status/edge/<edge>`` (wire.Status, 1 Hz: every service's values in one message).
+
+Both services share one ``Admission`` (edge/admission.py): only admitted robots get state, and the
+main loop's housekeeping evicts robots idle for ``admission.idle_timeout`` from every service.
+Every message is decoded within ``limits`` (the caps of ``wire.Limits``), and Zenoh's own
+transport refuses any message larger than ``limits.max_bytes`` (plus framing) before it is
+reassembled, unless the config file or ``--cfg`` sets that key.
 
 Lifecycle as in uvicorn's Server: ``startup`` (session, ping, status publisher, services, then the
 token), ``main_loop`` (status until stopped), ``shutdown`` (services in reverse, then the session).
@@ -23,15 +30,19 @@ import zenoh
 
 from zoffload.detect.detector import Detector
 from zoffload.detect.models import ModelError
+from zoffload.edge.admission import Admission
 from zoffload.edge.detection import DetectorService
-from zoffload.edge.mapping import MapperRecipe, MappingService
+from zoffload.edge.mapping import MappingService
+from zoffload.edge.recipe import MapperRecipe
+from zoffload.edge.ros2 import ros2_service
 from zoffload.edge.service import EdgeService
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.runtime.config import EdgeSettings, ZenohSettings
+from zoffload.runtime.config import EdgeSettings, LimitsSettings, ZenohSettings
+from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
-from zoffload.runtime.session import open_session
+from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, with_defaults
 
 log = logging.getLogger("zoffload.edge")
 
@@ -39,28 +50,44 @@ DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_dro
 DROP_WAIT_US = 50_000
 
 
-def edge_zenoh(z: ZenohSettings) -> ZenohSettings:
+def edge_zenoh(z: ZenohSettings, max_bytes: int | None = None) -> ZenohSettings:
     """The edge's session settings: acks and detections are small and published with DROP (a
     stalled robot must not block the mapper or the detector), but Zenoh's default 1 ms wait before
     dropping loses some of a burst of acks when the edge's CPU is busy. The edge waits up to 50 ms
-    (two camera frames) unless the user's ``--cfg`` or config file sets the key."""
-    if z.config_file or any(item.split(":", 1)[0] == DROP_WAIT_KEY for item in z.cfg):
-        return z
-    return z.model_copy(update={"cfg": [f"{DROP_WAIT_KEY}:{DROP_WAIT_US}", *z.cfg]})
+    (two camera frames). With ``max_bytes``, the transport refuses larger messages (Zenoh's
+    default is 1 GiB). Keys the user's ``--cfg`` or config file sets are left alone."""
+    defaults = {DROP_WAIT_KEY: str(DROP_WAIT_US)}
+    if max_bytes is not None:
+        defaults[MAX_MESSAGE_KEY] = str(max_bytes + 64 * 1024)  # room for the message's framing
+    return with_defaults(z, defaults)
+
+
+def wire_limits(limits: LimitsSettings) -> wire.Limits:
+    return wire.Limits(max_points=limits.max_points, max_pixels=limits.max_pixels,
+                       max_bytes=limits.max_bytes)
+
+
+def admission(settings: EdgeSettings) -> Admission:
+    a = settings.admission
+    return Admission(a.robots, max_robots=a.max_robots, idle_timeout=a.idle_timeout,
+                     refusals_per_s=a.refusals_per_s)
 
 
 # Factories: settings unpacked into each service's own arguments
-def mapping_service(settings: EdgeSettings, keys: Keys) -> MappingService:
+def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | None = None) -> MappingService:
     m = settings.mapper
     recipe = MapperRecipe(voxel_size=m.voxel_size, min_range=m.min_range, max_range=m.max_range,
                           max_points_per_voxel=m.max_points_per_voxel, deskew=m.deskew,
-                          map_resolution=m.map_resolution)
+                          map_resolution=m.map_resolution, map_budget=m.map_budget,
+                          trajectory_budget=m.trajectory_budget)
     return MappingService(keys, recipe if m.enabled else None, queue=m.queue,
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,
-                          map_format=settings.map_format)
+                          map_format=settings.map_format, edge_id=settings.edge_id, workers=m.workers,
+                          admission=admitted or admission(settings), limits=wire_limits(settings.limits))
 
 
-def detector_service(settings: EdgeSettings, keys: Keys) -> DetectorService | None:
+def detector_service(settings: EdgeSettings, keys: Keys,
+                     admitted: Admission | None = None) -> DetectorService | None:
     """The detector service, or None when it is off or (``enabled`` unset) its model is missing."""
     d = settings.detector
     if d.enabled is False:
@@ -72,7 +99,8 @@ def detector_service(settings: EdgeSettings, keys: Keys) -> DetectorService | No
             raise
         log.warning("object detector off: %s", exc)
         return None
-    return DetectorService(model, keys, settings.edge_id, queue=d.queue, batch=d.batch)
+    return DetectorService(model, keys, settings.edge_id, queue=d.queue, batch=d.batch,
+                           admission=admitted or admission(settings), limits=wire_limits(settings.limits))
 
 
 class EdgeServer:
@@ -86,6 +114,8 @@ class EdgeServer:
         self.mapping: MappingService | None = None
         self.detector: DetectorService | None = None
         self.services: list[EdgeService] = []  # the started ones, in start order
+        self.admission = admission(settings)
+        self.drops = Drops(log)  # the server's own queryable (ping)
         self._status_pub: zenoh.Publisher | None = None
         self._ping_q: zenoh.Queryable[None] | None = None
         self._token: zenoh.LivelinessToken | None = None
@@ -101,15 +131,17 @@ class EdgeServer:
     # Startup
     def startup(self) -> None:
         s = self.settings
-        session = self.session = open_session(edge_zenoh(s.zenoh))
-        self._ping_q = session.declare_queryable(self.keys.all_pings(), self._on_ping)
+        session = self.session = open_session(edge_zenoh(s.zenoh, s.limits.max_bytes))
+        self._ping_q = session.declare_queryable(self.keys.all_pings(),
+                                                 self.drops.guard(self._on_ping, "ping"))
         self._status_pub = session.declare_publisher(
             self.keys.edge_status(s.edge_id), congestion_control=zenoh.CongestionControl.DROP
         )
         # Services, each warmed up before it declares anything
-        self.mapping = mapping_service(s, self.keys)
-        self.detector = detector_service(s, self.keys)
-        for service in (self.mapping, self.detector):
+        self.mapping = mapping_service(s, self.keys, self.admission)
+        self.detector = detector_service(s, self.keys, self.admission)
+        ros2 = ros2_service(s, self.keys)  # None unless ros2.enabled; last: it reads the others' answers
+        for service in (self.mapping, self.detector, ros2):
             if service is not None:
                 service.start(session)
                 self.services.append(service)
@@ -119,21 +151,32 @@ class EdgeServer:
                  ", ".join(x.name for x in self.services), s.zenoh.mode, s.zenoh.listen, s.zenoh.connect)
 
     def _on_ping(self, query: zenoh.Query) -> None:
-        params = query.parameters
-        stamp = float(params.get("stamp") or "nan") if params else float("nan")
-        query.reply(query.key_expr, wire.encode(wire.Pong(edge=self.settings.edge_id, stamp=stamp)))
+        query.reply(query.key_expr, wire.encode(wire.Pong(edge=self.settings.edge_id,
+                                                          stamp=ping_stamp(query.parameters))))
 
     # Main loop
     def status(self) -> wire.Status:
         values: dict[str, float] = {}
         for service in self.services:
             values.update(service.status())
+        values.update(self.admission.status())
+        values.update({f"ping.drop.{k}": float(v) for k, v in self.drops.snapshot().items()})
         return wire.Status(source="edge", id=self.settings.edge_id, stamp=time.time(), values=values)
 
     def main_loop(self) -> None:
         assert self._status_pub is not None, "main_loop() runs after startup()"
         while not self.stop.wait(self.settings.status_period):
+            self.housekeeping()
             self._status_pub.put(wire.encode(self.status()))
+
+    def housekeeping(self, now: float | None = None) -> list[str]:
+        """Evict the robots idle for longer than the admission's ``idle_timeout`` from every
+        service (the mapping service exports their maps first); returns them."""
+        gone = self.admission.expire(now)
+        for robot in gone:
+            for service in self.services:
+                service.evict(robot)
+        return gone
 
     # Shutdown
     def shutdown(self) -> None:
@@ -164,3 +207,13 @@ def run(settings: EdgeSettings, stop: StopSignal | None = None) -> None:
     if settings.map_dir:
         write_effective(settings, Path(settings.map_dir) / "edge_config.yaml")
     EdgeServer(settings, stop).serve()
+
+
+def ping_stamp(parameters: object) -> float:
+    """The robot's stamp from a ping's ``stamp=`` parameter, NaN when absent or not a stamp (a
+    pong echoes it, and must still be a valid message)."""
+    try:
+        value = float(parameters.get("stamp") or "nan")  # type: ignore[attr-defined]
+    except (AttributeError, TypeError, ValueError):
+        return float("nan")
+    return value if abs(value) <= 1e12 else float("nan")

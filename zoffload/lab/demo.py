@@ -32,6 +32,7 @@ class DemoOptions:
     replay: Replay | None = None
     trace: str | None = "demo"  # the link emulator's trace; None: no emulator, direct TCP
     camera: str | None = None  # also stream camera frames (e.g. "coco-clips") to the edge detector
+    view: Any = None  # a lab.view.live.ViewOptions: serve the live view (saved to OUT/view.rrd)
 
 
 def run(opts: DemoOptions) -> int:
@@ -57,17 +58,30 @@ def run(opts: DemoOptions) -> int:
     link = (f"through the link emulator (trace {opts.trace})" if opts.trace else "direct TCP")
     print(f"zoffload demo: {opts.duration:g} s of {'simulated warehouse' if is_sim else opts.scans} "
           f"scans, robot -> edge {link}, results in {out}")
+    view = _live_view(opts.view, out) if opts.view else None
     try:
-        run = run_offload(out, edge, robot, opts.trace, ["--quiet"], max_scans, opts.duration + 120)
+        run = run_offload(out, edge, robot, opts.trace, ["--quiet"], max_scans, opts.duration + 120,
+                          on_watch=view.announce if view else None)
     except StartError as exc:
         print(exc)
         return ExitCode.FAILURE
+    finally:
+        if view is not None:
+            view.close()
     if run.robot_code != 0:
         return run.robot_code
     code = _report(out, run.reply, is_sim, opts.trace)
     if opts.camera:
         _report_camera(out, opts.camera)
     return code
+
+
+def _live_view(options: Any, out: Path) -> Any:
+    from dataclasses import replace
+
+    from zoffload.lab.view.live import LiveView
+
+    return LiveView(replace(options, save=options.save or str(out / "view.rrd")))
 
 
 def _report(out: Path, reply: wire.MapReply | None, is_sim: bool, trace: str | None) -> int:
@@ -106,7 +120,12 @@ def _report(out: Path, reply: wire.MapReply | None, is_sim: bool, trace: str | N
           f"{b['dropped_source']} dropped at source (balanced: {robot_metrics['balanced']})")
     if s["sent"]:
         print(f"points per scan: {s['mean_points_raw']:.0f} raw -> {s['mean_points_sent']:.0f} sent "
-              f"({s['mean_kB_sent']:.0f} kB), robot work {s['mean_work_ms']:.1f} ms/scan")
+              f"({s['mean_kB_sent']:.0f} kB), {s.get('skipped', 0)} scans skipped by the policy")
+    cpu = robot_metrics.get("cpu") or {}
+    if cpu.get("per_scan_ms") is not None:
+        print(f"robot CPU: {cpu['per_scan_ms']:.2f} ms per scan sent (offload path, median; p95 "
+              f"{cpu['p95_per_scan_ms']:.2f}), whole process {cpu['process_ms_per_scan']:.1f} ms per scan "
+              f"(the sensor's replay, {1e3 * cpu['sensor_s'] / max(1, b['produced']):.1f} ms, not counted)")
     if s["mean_T"] is not None:
         print(f"inter-arrival at the edge: mean T {s['mean_T']:.3f} s, "
               f"{100 * s['frac_T_le_0.11']:.0f} % <= 0.11 s; mean RTT {s['mean_rtt_ms']:.0f} ms")

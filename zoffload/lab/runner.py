@@ -93,6 +93,7 @@ def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
         f"[{elapsed:5.1f} s] scans {int(st.get('published', 0))}/{total} sent, "
         f"{int(st.get('acked', 0))} acked, {int(st.get('lost', 0))} lost | "
         f"voxel {st.get('voxel', 0):.2f} m | T {st.get('last_T', 0):.3f} s | "
+        f"CPU {st.get('cpu_ms', float('nan')):.1f} ms | "
         f"RTT {st.get('rtt_ms', float('nan')):.0f} ms | map {int(st.get('map_points', 0)):,} pts"
     )
 
@@ -173,7 +174,7 @@ def loopback_zenoh(**kw: Any) -> ZenohSettings:
 def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
                 link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
                 line: Callable[[dict[str, float], float, int], str] = progress_line,
-                fetch: bool = True) -> OffloadRun:
+                fetch: bool = True, on_watch: Callable[[zenoh.Session], None] | None = None) -> OffloadRun:
     """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
 
     The edge listens; the robot connects through the emulator in client mode (a peer could learn
@@ -205,6 +206,8 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
             raise StartError("the edge did not start:\n" + edge_p.tail())
         with session:
             status = StatusWatcher(session, keys, robot.robot_id)
+            if on_watch is not None:  # e.g. the live view, on this watching session
+                on_watch(session)
             if not wait_token(session, keys.any_edge_alive(), 30):
                 raise StartError("the edge did not come up:\n" + edge_p.tail())
             robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")

@@ -8,16 +8,19 @@ TCP send buffer is kept small so a slow link reaches Zenoh's congestion control 
 scans) instead of hiding in the kernel. The harness's own session talks to the edge directly
 (measurement only).
 
-Every run writes, even when cut short: ``results.json`` (the Table I row), ``scans.csv`` (per-scan
-decisions and measurements, with the link rate at that moment), ``link.csv`` (what the emulator
-let through per second), the configs and the logs.
+Every run writes, even when cut short: ``results.json`` (the Table I row, with the robot's CPU
+per scan, the scans deliberately skipped and the share on time for their slot), ``scans.csv``
+(per-scan decisions with their reason, measurements, the link rate at that moment), ``link.csv``
+(what the emulator let through per second), the configs and the logs. ``repeat`` runs the same
+experiment N times into ``run1`` ... ``runN`` (the link emulator's jitter seeded differently each
+time) for ``zoffload report`` to give mean and spread.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +29,7 @@ import numpy as np
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.lab.link.trace import Trace, load_trace
 from zoffload.lab.runner import link_clock_start, run_offload
-from zoffload.robot.ledger import RECORD_FIELDS
+from zoffload.robot.scanlog import RECORD_FIELDS
 from zoffload.runtime.config import EdgeSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.sources import open_scan_source
@@ -43,8 +46,9 @@ class ScanExperiment:
     replay: Replay | None = None  # default: once for sim, pingpong for a folder
     rate_hz: float | None = None
     seed: int = 0
-    coding: str = "f32"  # scan payload coding: "f32" or "q16z"
+    coding: str = "f32"  # scan payload coding: "f32", "q16z" or "q16d"
     voxel_range: tuple[float, float] | None = None  # the policies' range (default the robot's)
+    repeat: int = 1  # runs of the same experiment (run1 ... runN under ``out``)
 
 
 def policy_voxel(policy: str) -> float | None:
@@ -83,12 +87,34 @@ def _reference(source: ScanSource, indices: list[int], is_sim: bool, gt: dict[in
     return seqs, poses, "KISS-ICP run locally on every raw scan (no ground truth for real data)"
 
 
+DELIBERATE = ("source:pace", "source:skip", "source:stall")  # the robot chose not to send them
+SLOT_SLACK = 1.1  # on time for its slot: T <= 1.1 x the period the robot intended
+
+
+def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], period: float,
+                  produced: int) -> dict[str, Any]:
+    """Skipped scans and timeliness per slot: a scan sent after k deliberately skipped ones was
+    meant to arrive (k + 1) periods after the previous one."""
+    skipped = sum(r.get("status") in DELIBERATE for r in recs)
+    on_time = [float(r["interarrival"]) <= SLOT_SLACK * period * (1 + int(float(r.get("skipped") or 0)))
+               for r in received if r.get("interarrival") not in (None, "")
+               and np.isfinite(float(r["interarrival"]))]
+    return {
+        "scans_skipped": skipped,
+        "skipped_share": skipped / produced if produced else None,
+        "delivered_or_skipped": (len(received) + skipped) / produced if produced else None,
+        "on_time_slot": float(np.mean(on_time)) if on_time else None,
+    }
+
+
 def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int, err: Any,
-               reference: str, balance: dict[str, int] | None) -> dict[str, Any]:
+               reference: str, balance: dict[str, int] | None, period: float = 0.1,
+               cpu: dict[str, Any] | None = None) -> dict[str, Any]:
     sent = [r for r in recs if r.get("bytes") not in (None, "")]
     received = [r for r in recs if r.get("status") in ("acked", "edge_dropped", "edge_error", "late")]
     t = np.array([float(r["interarrival"]) for r in received if r.get("interarrival") not in (None, "")
                   and np.isfinite(float(r["interarrival"]))])
+    produced = (balance or {}).get("produced", len(recs))
     return {
         "policy": exp.policy if exp.coding == "f32" else f"{exp.policy}+{exp.coding}",
         "trace": exp.trace, "scans": exp.scans,
@@ -105,6 +131,11 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
         "trajectory_error": err.as_dict() if err else None,
         "trajectory_reference": reference,
         "balance": balance,
+        **(_slot_figures(recs, received, period, produced) if exp.policy != "local" else {}),
+        # the robot's CPU per scan: the offload path (median per scan sent), or KISS-ICP locally
+        "robot_cpu_ms": (cpu or {}).get("per_scan_ms"),
+        "robot_process_cpu_ms": (cpu or {}).get("process_ms_per_scan"),
+        "cpu": cpu,
     }
 
 
@@ -131,6 +162,19 @@ def _write_scans(path: Path, recs: list[dict[str, Any]]) -> None:
 
 
 def run_scan_experiment(exp: ScanExperiment) -> dict[str, Any]:
+    """One run, or with ``repeat`` > 1 every run into ``run1`` ... ``runN`` (the last one's row is
+    returned; ``zoffload report OUT/run*`` aggregates them)."""
+    if exp.repeat <= 1:
+        return _run_once(exp)
+    row: dict[str, Any] = {}
+    for i in range(1, exp.repeat + 1):
+        run = replace(exp, out=str(Path(exp.out) / f"run{i}"), repeat=1)
+        row = _run_once(run, link_seed=exp.seed + i - 1)
+        print(summary_line(row), flush=True)
+    return row
+
+
+def _run_once(exp: ScanExperiment, link_seed: int | None = None) -> dict[str, Any]:
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     voxel = policy_voxel(exp.policy)
@@ -147,7 +191,8 @@ def run_scan_experiment(exp: ScanExperiment) -> dict[str, Any]:
     if voxel is None:
         row = _run_local(exp, source, rate, replay, max_scans, is_sim, out)
     else:
-        row = _run_offload(exp, trace, voxel, rate, replay, max_scans, is_sim, source, out)
+        row = _run_offload(exp, trace, voxel, rate, replay, max_scans, is_sim, source, out,
+                           exp.seed if link_seed is None else link_seed)
     (out / "results.json").write_text(json.dumps(row, indent=2))
     return row
 
@@ -168,8 +213,12 @@ def _run_local(exp: ScanExperiment, source: ScanSource, rate: float, replay: Rep
     if not is_sim:  # the local run registered raw scans: it is the reference, matched by seq
         ref_seqs = np.array([r["seq"] for r in run.records])[: len(ref_seqs)]
     err = trajectory_error(seqs, poses, ref_seqs, ref_poses)
+    scans = max(1, len(run.records))
+    cpu = {"per_scan_ms": 1e3 * (run.cpu_s - run.sensor_cpu_s) / scans,  # KISS-ICP + the global map
+           "process_s": run.cpu_s, "sensor_s": run.sensor_cpu_s,
+           "process_ms_per_scan": 1e3 * (run.cpu_s - run.sensor_cpu_s) / scans}
     return _table_row(exp, run.records, run.mapper.map_points, err, reference,
-                      {"produced": len(run.records) + run.overrun, "overrun": run.overrun})
+                      {"produced": len(run.records) + run.overrun, "overrun": run.overrun}, 1 / rate, cpu)
 
 
 def _sample(points: np.ndarray, n: int = 200_000) -> np.ndarray:
@@ -177,7 +226,8 @@ def _sample(points: np.ndarray, n: int = 200_000) -> np.ndarray:
 
 
 def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, replay: Replay,
-                 max_scans: int, is_sim: bool, source: ScanSource, out: Path) -> dict[str, Any]:
+                 max_scans: int, is_sim: bool, source: ScanSource, out: Path, link_seed: int
+                 ) -> dict[str, Any]:
     edge = EdgeSettings(map_dir=str(out))
     robot = RobotSettings(
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
@@ -186,7 +236,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     )
     if exp.voxel_range:
         robot.voxel_range = exp.voxel_range
-    run = run_offload(out, edge, robot, exp.trace, ["--seed", str(exp.seed)], max_scans,
+    run = run_offload(out, edge, robot, exp.trace, ["--seed", str(link_seed)], max_scans,
                       max_scans / rate + 120, keep_interrupted=True)
     reply = run.reply
     wall_start = link_clock_start(out / "link.log")
@@ -204,8 +254,10 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
         map_points = len(reply.points)
         ref_seqs, ref_poses, reference = _reference(source, [int(r["index"]) for r in recs], is_sim, gt)
         err = trajectory_error(reply.seqs, reply.poses, ref_seqs, ref_poses)
-    row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"))
+    row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"), 1 / rate,
+                     metrics.get("cpu"))
     row["cut_short"] = run.cut_short
+    row["link_seed"] = link_seed
     return row
 
 
@@ -226,6 +278,10 @@ def summary_line(row: dict[str, Any]) -> str:
             f"{row['scans_received']}/{row['scans_produced']} (sent {row['scans_sent']}), "
             f"T {f(row['T_mean'], '.3f')} s "
             f"({f(100 * row['T_le_0.11'] if row['T_le_0.11'] is not None else None, '.0f')} % <= 0.11), "
-            f"map {row['map_points']:,} pts, ATE {f(err.get('ate_rmse'), '.3f')} m")
+            f"map {row['map_points']:,} pts, ATE {f(err.get('ate_rmse'), '.3f')} m, "
+            f"robot CPU {f(row.get('robot_cpu_ms'), '.2f')} ms/scan"
+            + (f", skipped {row['scans_skipped']}, on time for slot "
+               f"{f(100 * row['on_time_slot'] if row.get('on_time_slot') is not None else None, '.0f')} %"
+               if "scans_skipped" in row else ""))
 
 

@@ -48,6 +48,25 @@ def load_kiss_icp() -> tuple[Any, Any]:
     return KISSConfig, KissICP
 
 
+def deskew_times(times: np.ndarray | None, n: int) -> np.ndarray:
+    """Per-point times as KISS-ICP's deskewing takes them: float64 in [0, 1] over the scan (the
+    fraction every KISS-ICP version understands: up to 1.2.1 it expected them normalised, from
+    1.2.2 it normalises them itself). An empty array (no deskew) when there are none or they do
+    not spread: KISS-ICP 1.3 aborts the process (SOPHUS_ENSURE) on all-equal times.
+    ``ValueError`` when there is not one finite time per point."""
+    if times is None or n == 0:
+        return np.empty(0)
+    t = np.asarray(times, np.float64).reshape(-1)
+    if len(t) != n:
+        raise ValueError(f"{len(t)} point times for {n} points")
+    if not np.isfinite(t).all():
+        raise ValueError("non-finite point times")
+    lo, hi = float(t.min()), float(t.max())
+    if not hi > lo:
+        return np.empty(0)
+    return (t - lo) / (hi - lo)
+
+
 class RobotMapper:
     """KISS-ICP odometry and a global map for one robot."""
 
@@ -75,20 +94,30 @@ class RobotMapper:
         self.map_resolution = map_resolution
         self.voxel_size = voxel_size
         self.max_gap = max_gap  # beyond this many lost scans, constant velocity means nothing
+        self.deskew = deskew
         self.seqs: list[int] = []
         self.poses: list[np.ndarray] = []
 
-    def register(self, seq: int, points: np.ndarray) -> Registration:
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
+        """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
+        mapper was made with ``deskew`` (see ``deskew_times``)."""
         t0 = time.perf_counter()
         frame = np.asarray(points, dtype=np.float64)
+        stamps = deskew_times(times, len(frame)) if self.deskew else np.empty(0)
         # Scans lost on the way: KISS-ICP predicts one scan period of motion, so stretch its
         # constant-velocity model over the gap, and bring it back to one period afterwards.
         gap = int(seq) - self.seqs[-1] if self.seqs else 1
         stretch = 1 < gap <= self.max_gap
+        if stretch and len(stamps):
+            # Deskew with one period of motion (the sweep's), not the stretched prediction
+            frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
+            stamps = np.empty(0)
         if stretch:
             self.odometry.last_delta = se3_power(self.odometry.last_delta, gap)
-        # Run KISS-ICP
-        _, keypoints = self.odometry.register_frame(frame, np.empty(0))
+        # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
+        frame_out, keypoints = self.odometry.register_frame(frame, stamps)
+        if len(stamps):
+            frame = np.asarray(frame_out)
         if stretch:
             self.odometry.last_delta = se3_power(self.odometry.last_delta, 1.0 / gap)
         icp_time = time.perf_counter() - t0

@@ -4,14 +4,28 @@ A point ``p`` falls in voxel ``floor(p / v)`` (grid anchored at the origin, divi
 each non-empty voxel is replaced by the centroid of its points. Voxels come out in the order of
 their first point, so the result is deterministic for a given scan.
 
-The kernel is a single pass with an open-addressing hash table, compiled by numba, working in
-per-thread scratch buffers; benchmarks/bench_voxel.py compares it with Open3D and a ``np.unique``
-grid on a real HDL-64 scan.
+The kernel (numba) works in two loops over the points: the voxel keys first (divisions, floors,
+range checks: a loop the compiler vectorises), then one open-addressing hash pass that sums each
+run of consecutive points sharing a voxel in registers and touches the table once per run. The
+table holds voxel ids (int32, at least twice as many slots as points) and is reset by clearing
+only the slots used, so a coarse grid does not pay for a table sized for the raw scan. Per-point
+times, when a scan has them, are averaged like the coordinates (a centroid's time is the mean of
+its points' times).
+
+The table's hash is salted per process: ``(key ^ salt) * GOLDEN``. Points may come from the
+network (ROS topics), and with a public hash a sender could choose points whose voxels share one
+probe chain. ``benchmarks/bench_voxel.py`` compares the kernel with Open3D on a real HDL-64 scan.
+
+``VoxelGrid`` keeps the scratch buffers and hands out ``Grid`` results (views of its buffers,
+valid until its next pass on the same buffer): the robot reads centroids straight from them into
+its payload (``protocol/coding.py``), with no intermediate array.
 """
 
 from __future__ import annotations
 
+import secrets
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -21,92 +35,227 @@ KEY_BITS = 21
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 MAX_INDEX = KEY_OFFSET - 1
 GOLDEN = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as int64 (Fibonacci hashing)
-
-
 _LIMIT = float(MAX_INDEX)
 
 
-@njit(cache=True, nogil=True)
-def _voxel_centroids(  # pragma: no cover - compiled
-    points: np.ndarray, v: float, slot_key: np.ndarray, slot_voxel: np.ndarray, acc: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """One pass: hash each point's voxel and accumulate its sums; consecutive LiDAR points often
-    share a voxel, hence the last-key cache. Returns (centroids, counts, -1), or the index of the
-    first point that is non-finite or off the grid as the third value."""
+def new_salt() -> np.int64:
+    """A random 64-bit salt for the voxel hash."""
+    return np.int64(secrets.randbits(64) - (1 << 63))
+
+
+SALT = new_salt()  # this process's
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _grid_keys(points: np.ndarray, times: np.ndarray, v: float, keys: np.ndarray, box: np.ndarray
+               ) -> tuple[int, int]:  # pragma: no cover - compiled
+    """Packed voxel key per point, -1 for a point that is non-finite, off the grid, or has a
+    non-finite time; ``box`` gets the valid points' bounds (min x, y, z, max x, y, z, min t, max t).
+    Returns (invalid points, index of the first)."""
     n = points.shape[0]
-    cap = 1
-    bits = 0
-    while cap < 2 * n:
-        cap <<= 1
-        bits += 1
-    shift = np.uint64(64 - bits)
-    slot_key[:cap] = -1
-    nv = 0
-    last_key = np.int64(-1)
-    j = 0
+    timed = times.shape[0] == n
+    bad = 0
+    first = -1
+    lx = ly = lz = tl = np.inf
+    hx = hy = hz = th = -np.inf
     for i in range(n):
-        x = points[i, 0]
-        y = points[i, 1]
-        z = points[i, 2]
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
         fx = np.floor(x / v)
         fy = np.floor(y / v)
         fz = np.floor(z / v)
         # NaN fails every comparison: one test rejects non-finite and off-grid points
-        if not (-_LIMIT < fx < _LIMIT and -_LIMIT < fy < _LIMIT and -_LIMIT < fz < _LIMIT):
-            return np.empty((0, 3)), np.empty(0, np.int64), i
-        key = (
-            ((np.int64(fx) + KEY_OFFSET) << (2 * KEY_BITS))
-            | ((np.int64(fy) + KEY_OFFSET) << KEY_BITS)
-            | (np.int64(fz) + KEY_OFFSET)
-        )
-        if key != last_key:
-            s = np.int64(np.uint64(key * GOLDEN) >> shift)
-            while True:
-                k = slot_key[s]
-                if k == key:
-                    j = slot_voxel[s]
-                    break
-                if k == -1:
-                    slot_key[s] = key
-                    slot_voxel[s] = nv
-                    j = nv
-                    acc[j, 0] = 0.0
-                    acc[j, 1] = 0.0
-                    acc[j, 2] = 0.0
-                    acc[j, 3] = 0.0
-                    nv += 1
-                    break
-                s = (s + 1) & (cap - 1)
-            last_key = key
-        acc[j, 0] += x
-        acc[j, 1] += y
-        acc[j, 2] += z
-        acc[j, 3] += 1.0
-    out = np.empty((nv, 3), np.float64)
-    counts = np.empty(nv, np.int64)
-    for q in range(nv):
-        c = acc[q, 3]
-        out[q, 0] = acc[q, 0] / c
-        out[q, 1] = acc[q, 1] / c
-        out[q, 2] = acc[q, 2] / c
-        counts[q] = np.int64(c)
-    return out, counts, -1
+        ok = (-_LIMIT < fx) & (fx < _LIMIT) & (-_LIMIT < fy) & (fy < _LIMIT) & (-_LIMIT < fz) & (fz < _LIMIT)
+        if timed:
+            ok = ok & np.isfinite(times[i])
+        if ok:
+            keys[i] = (((np.int64(fx) + KEY_OFFSET) << (2 * KEY_BITS))
+                       | ((np.int64(fy) + KEY_OFFSET) << KEY_BITS) | (np.int64(fz) + KEY_OFFSET))
+            lx, ly, lz = min(lx, x), min(ly, y), min(lz, z)
+            hx, hy, hz = max(hx, x), max(hy, y), max(hz, z)
+            if timed:
+                tl, th = min(tl, times[i]), max(th, times[i])
+        else:
+            keys[i] = -1
+            if first < 0:
+                first = i
+            bad += 1
+    box[0], box[1], box[2], box[3], box[4], box[5], box[6], box[7] = lx, ly, lz, hx, hy, hz, tl, th
+    return bad, first
 
 
-_scratch = threading.local()
+@njit(cache=True, nogil=True, error_model="numpy")
+def _grid_pass(  # pragma: no cover - compiled
+    points: np.ndarray, times: np.ndarray, v: float, salt: np.int64, skip_invalid: bool,
+    keys: np.ndarray, slots: np.ndarray, keyof: np.ndarray, vslot: np.ndarray,
+    sums: np.ndarray, tsums: np.ndarray, counts: np.ndarray, box: np.ndarray,
+) -> tuple[int, int, int, float]:
+    """Sums and counts per voxel, voxels in the order of their first point, and the valid
+    points' bounds in ``box`` (times relative to the reference). Returns (voxels, invalid points,
+    first invalid index, time reference). Without ``skip_invalid`` an invalid point stops the pass
+    before anything is hashed (voxels = 0, its index returned)."""
+    n = points.shape[0]
+    timed = times.shape[0] == n
+    bad, first = _grid_keys(points, times, v, keys, box)
+    if bad and not skip_invalid:
+        return 0, bad, first, 0.0
+    t_ref = 0.0  # times are summed relative to the first valid point's, for precision
+    if timed:
+        for i in range(n):
+            if keys[i] >= 0:
+                t_ref = times[i]
+                break
+        box[6] -= t_ref
+        box[7] -= t_ref
+    cap = slots.shape[0]
+    bits = 0
+    while (1 << bits) < cap:
+        bits += 1
+    shift = np.uint64(64 - bits)
+    mask = cap - 1
+    nv = 0
+    last = np.int64(-1)
+    j = -1
+    sx = sy = sz = st = 0.0
+    c = 0
+    for i in range(n):
+        key = keys[i]
+        if key < 0:
+            continue
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
+        t = times[i] - t_ref if timed else 0.0
+        if key == last:  # LiDAR points come in sweeps: neighbours often share a voxel
+            sx += x
+            sy += y
+            sz += z
+            st += t
+            c += 1
+            continue
+        if j >= 0:  # the run ends: add it to its voxel
+            sums[j, 0] += sx
+            sums[j, 1] += sy
+            sums[j, 2] += sz
+            tsums[j] += st
+            counts[j] += c
+        s = np.int64(np.uint64((key ^ salt) * GOLDEN) >> shift)
+        while True:
+            q = slots[s]
+            if q < 0:
+                slots[s] = nv
+                keyof[nv] = key
+                vslot[nv] = s
+                j = nv
+                sums[j, 0] = 0.0
+                sums[j, 1] = 0.0
+                sums[j, 2] = 0.0
+                tsums[j] = 0.0
+                counts[j] = 0
+                nv += 1
+                break
+            if keyof[q] == key:
+                j = q
+                break
+            s = (s + 1) & mask
+        last = key
+        sx, sy, sz, st, c = x, y, z, t, 1
+    if j >= 0:
+        sums[j, 0] += sx
+        sums[j, 1] += sy
+        sums[j, 2] += sz
+        tsums[j] += st
+        counts[j] += c
+    for q in range(nv):  # leave the table empty for the next pass
+        slots[vslot[q]] = -1
+    return nv, bad, first, t_ref
 
 
-def _buffers(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-thread scratch arrays, reused across scans: no allocation (and no page faults) in the
-    per-scan hot path once the largest scan has been seen."""
-    cap = 1
-    while cap < 2 * n:
-        cap <<= 1
-    bufs = getattr(_scratch, "bufs", None)
-    if bufs is None or len(bufs[0]) < cap or len(bufs[2]) < n:
-        bufs = (np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty((max(n, 1), 4)))
-        _scratch.bufs = bufs
-    return bufs
+@njit(cache=True, nogil=True, error_model="numpy")
+def _centroids(sums: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    for q in range(out.shape[0]):
+        c = counts[q]
+        out[q, 0] = sums[q, 0] / c
+        out[q, 1] = sums[q, 1] / c
+        out[q, 2] = sums[q, 2] / c
+
+
+@dataclass(frozen=True)
+class Grid:
+    """One grid pass: per-voxel sums and counts (views of the grid's scratch buffers, valid until
+    its next pass on the same buffer) and the invalid points that were skipped."""
+
+    voxel: float
+    sums: np.ndarray  # (m, 3) float64
+    counts: np.ndarray  # (m,) int32
+    tsums: np.ndarray | None  # (m,) float64, times relative to ``t_ref``; None without times
+    t_ref: float
+    n_invalid: int
+    box: np.ndarray  # the valid points' bounds: min x, y, z, max x, y, z, min t, max t (t - t_ref)
+
+    def __len__(self) -> int:
+        return len(self.counts)
+
+    def centroids(self, dtype: type = np.float64) -> np.ndarray:
+        """A new (m, 3) array of the voxels' centroids."""
+        out: np.ndarray = np.empty((len(self.counts), 3), dtype)
+        _centroids(self.sums, self.counts, out)
+        return out
+
+    def mean_times(self) -> np.ndarray | None:
+        """Each voxel's mean point time relative to ``t_ref`` (float64), None without times."""
+        return None if self.tsums is None else self.tsums / self.counts
+
+
+_NO_TIMES = np.empty(0, np.float64)
+
+
+class VoxelGrid:
+    """Scratch buffers for grid passes, reused across scans: no allocation (and no page faults)
+    in the per-scan hot path once the largest scan has been seen. ``buffers`` results can be held
+    at once (a scale policy trying two sizes keeps both). Not thread-safe: one per thread."""
+
+    def __init__(self, buffers: int = 1, salt: np.int64 | None = None) -> None:
+        self.salt = SALT if salt is None else np.int64(salt)
+        self._n = -1
+        self._buffers = buffers
+        self._shared: tuple[np.ndarray, ...] = ()
+        self._results: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def _ensure(self, n: int) -> None:
+        if n <= self._n:
+            return
+        n = max(n, 64)
+        cap = 1
+        while cap < 2 * n:
+            cap <<= 1
+        self._shared = (np.empty(n, np.int64), np.full(cap, -1, np.int32), np.empty(n, np.int64),
+                        np.empty(n, np.int64))
+        self._results = [(np.empty((n, 3)), np.empty(n), np.empty(n, np.int32)) for _ in range(self._buffers)]
+        self._n = n
+
+    def run(self, points: np.ndarray, voxel_size: float, times: np.ndarray | None = None,
+            skip_invalid: bool = False, buffer: int = 0) -> Grid:
+        """One pass over ``points`` ((n, 3) float32 or float64, C-contiguous). Invalid points
+        (non-finite, off the grid, a non-finite time) are skipped and counted with
+        ``skip_invalid``, otherwise the first one raises ``ValueError``."""
+        if not (voxel_size > 0 and np.isfinite(voxel_size)):
+            raise ValueError(f"voxel size must be a positive number, got {voxel_size!r}")
+        n = len(points)
+        t = _NO_TIMES if times is None else np.ascontiguousarray(times, np.float64)
+        if times is not None and len(t) != n:
+            raise ValueError(f"{len(t)} times for {n} points")
+        self._ensure(n)
+        keys, slots, keyof, vslot = self._shared
+        sums, tsums, counts = self._results[buffer]
+        box = np.empty(8)
+        nv, bad, first, t_ref = _grid_pass(points, t, float(voxel_size), self.salt, skip_invalid, keys, slots,
+                                           keyof, vslot, sums, tsums, counts, box)
+        if bad and not skip_invalid:
+            raise _bad_point(points, first, voxel_size, times)
+        return Grid(float(voxel_size), sums[:nv], counts[:nv], None if times is None else tsums[:nv],
+                    float(t_ref), int(bad), box)
 
 
 def check_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -120,14 +269,27 @@ def check_points(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.ascontiguousarray(pts[:, :3])
 
 
-def _bad_point(pts: np.ndarray, index: int, voxel_size: float) -> ValueError:
+def _bad_point(pts: np.ndarray, index: int, voxel_size: float, times: np.ndarray | None = None) -> ValueError:
     p = pts[index]
     if not np.isfinite(p).all():
         return ValueError(f"points contain NaN or infinite coordinates (point {index}); drop them first")
+    if times is not None and not np.isfinite(times[index]):
+        return ValueError(f"point {index} has a non-finite time")
     return ValueError(
         f"point {index} at {np.abs(p).max():.1f} m is too far for voxel size {voxel_size} "
         f"(at most {MAX_INDEX} voxels from the origin per axis)"
     )
+
+
+_local = threading.local()
+
+
+def thread_grid() -> VoxelGrid:
+    """This thread's grid (its scratch buffers persist across calls)."""
+    grid = getattr(_local, "grid", None)
+    if grid is None:
+        grid = _local.grid = VoxelGrid()
+    return grid
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -144,13 +306,15 @@ def voxel_downsample_counts(points: np.ndarray, voxel_size: float) -> tuple[np.n
     pts = check_points(points, voxel_size)
     if len(pts) == 0:
         return np.empty((0, 3)), np.empty(0, np.int64)
-    out, counts, bad = _voxel_centroids(pts, float(voxel_size), *_buffers(len(pts)))
-    if bad >= 0:
-        raise _bad_point(pts, bad, voxel_size)
-    return out, counts
+    grid = thread_grid().run(pts, voxel_size)
+    return grid.centroids(), grid.counts.astype(np.int64)
 
 
 def warmup() -> None:
-    """Compile (or load from numba's cache) the kernel for float32 and float64 input."""
+    """Compile (or load from numba's cache) the kernels for float32 and float64 input, with and
+    without times."""
+    grid = VoxelGrid()
     for dtype in (np.float32, np.float64):
-        voxel_downsample(np.zeros((4, 3), dtype), 0.1)
+        pts = np.zeros((4, 3), dtype)
+        grid.run(pts, 0.1).centroids()
+        grid.run(pts, 0.1, times=np.zeros(4), skip_invalid=True).centroids()

@@ -5,7 +5,7 @@
 * ``thesis``: the thesis' Algorithm 2 as published: CPU ≥ cpu_max → edge; outgoing bandwidth ≥
   bw_max → local; else the side with the lower smoothed RTT, where the edge RTT is averaged over
   the frames that *came back* (inference + network).
-* ``dynamic`` (ours, the default): the same rule, fixed where it failed under a bandwidth cap.
+* ``dynamic`` (ours before ``dispatch``): the same rule, fixed where it failed under a bandwidth cap.
   A frame that does not come back within the timeout enters the edge average *as* the timeout,
   and a frame in flight for over twice the average counts with its age so far, so an edge that
   stops answering looks slow at once. The local side is estimated by its detector's service time
@@ -17,6 +17,10 @@
   take the weak robot's CPU from the frames in flight) and detected locally otherwise. While the
   rule chooses local, one frame in ``probe_every`` still goes to the edge so its estimate stays
   fresh.
+* ``dispatch`` (ours, the default, policy/dispatch.py): both sides are servers working in
+  parallel; each frame goes to the side expected to finish it soonest given what each is already
+  doing, a frame no side can finish while fresh is skipped, and copies keep the edge's estimate
+  fresh without sacrificing frames.
 
 Strategies are pure decision objects: the offloader feeds them observations and asks ``choose``.
 """
@@ -28,20 +32,46 @@ from dataclasses import dataclass, field
 
 from zoffload.policy.smoothing import MovingAverage
 
-LOCAL, EDGE, HOLD = "local", "edge", "hold"  # hold: the frame is skipped (newer ones follow)
+LOCAL, EDGE, HOLD = "local", "edge", "hold"  # hold: the frame is held back (dropped_window)
+SKIP = "skip"  # no side can finish the frame while it is fresh: skipped (its own bucket)
+BOTH = "both"  # detected locally, and a copy goes to the edge only to measure it (no result used)
+NAN = float("nan")
 
 
 @dataclass
 class OffloadState:
-    """What the offloader knows when a frame arrives."""
+    """What the offloader knows when a frame arrives (robot wall clock, seconds)."""
 
-    now: float  # monotonic
+    now: float
     edge_available: bool  # an edge is present and not in fallback
-    cpu_percent: float = float("nan")  # robot process CPU (one core = 100)
-    mbps_out: float = float("nan")  # robot outgoing bandwidth, smoothed
+    cpu_percent: float = NAN  # robot process CPU (one core = 100)
+    mbps_out: float = NAN  # robot outgoing bandwidth, smoothed
     oldest_in_flight_age: float = 0.0  # seconds the oldest unanswered edge frame has waited
     in_flight: int = 0
     local_busy: bool = False  # the local detector is working on a frame
+    # What the work-conserving dispatcher needs (the others ignore it)
+    capture: float = NAN  # when this frame was captured
+    local_busy_for: float = 0.0  # seconds the local detector has spent on its current frame
+    local_waiting: bool = False  # a frame waits in the local detector's one slot
+    local_last_start: float = -math.inf  # when the local detector last started a frame
+    send_waiting: bool = False  # a frame waits in the sender's one slot (the link is busy)
+    edge_sends: tuple[tuple[float, float], ...] = ()  # (sent at, bytes or NaN) of unanswered edge
+    # frames and copies, oldest first
+    cpu_time: float = NAN  # the robot process's CPU seconds so far (all threads)
+    local_cpu_time: float = NAN  # of which the local detector's
+    cpu_quota: float = NAN  # cores the robot process may use (a CFS quota); NaN: no quota
+
+
+@dataclass(frozen=True)
+class EdgeReply:
+    """One answer from the edge, as the robot saw it."""
+
+    sent: float  # handed to the sender
+    result: float  # answer received
+    bytes: float  # the frame's size on the wire (NaN if unknown)
+    service: float  # the edge's own processing time (decode + inference), NaN if it says none
+    delivery_rate: float = NAN  # bytes/s acked over this frame's flight, when the pipe was busy
+    status: str = "ok"  # ok, dropped (the edge's queue overflowed), error
 
 
 @dataclass
@@ -50,24 +80,34 @@ class Strategy:
     offloaded: int = 0
     total: int = 0
 
+    # When the local detector may start its next frame (robot clock): a pacing strategy keeps the
+    # detector within the robot's CPU budget; the others never hold it back.
+    local_ready_at: float = -math.inf
+
     def choose(self, st: OffloadState) -> str:
         raise NotImplementedError
 
     def decide(self, st: OffloadState) -> str:
         """``choose``, with the edge replaced by local when no edge is available, and counted."""
         side = self.choose(st)
-        if side == EDGE and not st.edge_available:
+        if side in (EDGE, BOTH) and not st.edge_available:
             side = LOCAL
         self.total += 1
         self.offloaded += side == EDGE
         return side
 
     # Observations (no-ops for the static strategies)
-    def on_local_result(self, rtt: float, service: float | None = None) -> None:  # noqa: B027
+    def on_local_result(self, rtt: float, service: float | None = None,  # noqa: B027 - optional
+                        cpu: float | None = None) -> None:
         pass
 
-    def on_edge_result(self, rtt: float) -> None:  # noqa: B027 - optional hook
+    def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:  # noqa: B027
         pass
+
+    def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
+        """The edge answered without detections (its queue overflowed, or the frame was bad): by
+        default as bad as a frame that timed out after ``penalty`` seconds."""
+        self.on_edge_timeout(penalty)
 
     def on_edge_timeout(self, waited: float) -> None:  # noqa: B027 - optional hook
         pass
@@ -137,10 +177,10 @@ class ThesisDynamic(Strategy):
             return LOCAL
         return self.compare(local, edge)
 
-    def on_local_result(self, rtt: float, service: float | None = None) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
         self.rtt_local.add(rtt)
 
-    def on_edge_result(self, rtt: float) -> None:
+    def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:
         self.rtt_edge.add(rtt)
 
 
@@ -163,7 +203,7 @@ class DeliveryAwareDynamic(ThesisDynamic):
         super().__post_init__()
         self._window = float(self.max_in_flight)
 
-    def on_edge_result(self, rtt: float) -> None:
+    def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:
         super().on_edge_result(rtt)
         self._window = min(float(self.max_in_flight), self._window + 0.25)
 
@@ -192,7 +232,7 @@ class DeliveryAwareDynamic(ThesisDynamic):
             self._preferred = EDGE
         return self._preferred
 
-    def on_local_result(self, rtt: float, service: float | None = None) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
         self.rtt_local.add(rtt)
         if service is not None:
             self.service_local.add(service)
@@ -220,9 +260,13 @@ class DeliveryAwareDynamic(ThesisDynamic):
         self._window = max(float(self.min_window), self._window / 2)
 
 
+STRATEGIES = "robot, edge, ratio:R, thesis, dynamic or dispatch"
+
+
 def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("inf"),
-                  max_in_flight: int = 4) -> Strategy:
-    """``robot``, ``edge``, ``ratio:R`` (0 ≤ R ≤ 1), ``thesis`` or ``dynamic``; ValueError otherwise."""
+                  max_in_flight: int = 4, **dispatch: float) -> Strategy:
+    """``robot``, ``edge``, ``ratio:R`` (0 ≤ R ≤ 1), ``thesis``, ``dynamic`` or ``dispatch`` (with
+    its parameters in ``dispatch``, see policy/dispatch.py); ValueError otherwise."""
     if spec == "robot":
         return RobotOnly()
     if spec == "edge":
@@ -239,4 +283,8 @@ def make_strategy(spec: str, cpu_max: float = 90.0, bw_max_mbps: float = float("
         return ThesisDynamic(cpu_max=cpu_max, bw_max_mbps=bw_max_mbps)
     if spec == "dynamic":
         return DeliveryAwareDynamic(cpu_max=cpu_max, bw_max_mbps=bw_max_mbps, max_in_flight=max_in_flight)
-    raise ValueError(f"unknown offloading strategy {spec!r} (robot, edge, ratio:R, thesis, dynamic)")
+    if spec == "dispatch":
+        from zoffload.policy.dispatch import Dispatcher
+
+        return Dispatcher(max_in_flight=max_in_flight, **dispatch)  # type: ignore[arg-type]
+    raise ValueError(f"unknown offloading strategy {spec!r} ({STRATEGIES})")

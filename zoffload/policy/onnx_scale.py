@@ -63,10 +63,13 @@ class OnnxScalePolicy:
         return self.mdp.apply(v, self.action(last_t, last_v))
 
 
-def load_scale_policy(spec: str, voxel: float, voxel_range: tuple[float, float]) -> ScalePolicy:
+def load_scale_policy(spec: str, voxel: float, voxel_range: tuple[float, float], widen: float = 2.0,
+                      max_skip: int = 2, stall_after: float = 0.5, jitter_pace: int = 1) -> ScalePolicy:
     """``fixed`` (the robot's ``voxel``), ``dqn`` (the packaged model), ``dqn:PATH`` or ``rate`` (ours,
-    policy/rate.py, over ``voxel_range``). A DQN model
-    that cannot be loaded is logged and replaced by the fixed voxel size, named in the log."""
+    policy/rate.py, over ``voxel_range``, widened up to ``widen`` times its upper end, skipping up
+    to ``max_skip`` scans in a row, pausing after ``stall_after`` seconds without an ack, taking up
+    to ``jitter_pace`` periods per scan on a jittery link). A DQN
+    model that cannot be loaded is logged and replaced by the fixed voxel size, named in the log."""
     if spec == "fixed":
         return FixedScale(voxel)
     if spec == "dqn" or spec.startswith("dqn:"):
@@ -83,5 +86,6 @@ def load_scale_policy(spec: str, voxel: float, voxel_range: tuple[float, float])
     if spec == "rate":
         from zoffload.policy.rate import LinkAwareScale
 
-        return LinkAwareScale(voxel_range, start=voxel if voxel > 0 else 0.05)
+        return LinkAwareScale(voxel_range, start=voxel if voxel > 0 else 0.05, widen=widen, max_skip=max_skip,
+                              stall_after=stall_after, jitter_pace=jitter_pace)
     raise ValueError(f"unknown scale policy {spec!r} (fixed, dqn, dqn:PATH, rate)")

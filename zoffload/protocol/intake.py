@@ -1,11 +1,10 @@
-"""Intake of a robot's messages on the edge: decode, check the sender named in the key, count and
-log what is dropped."""
+"""Intake of a robot's messages on the edge: decode within the edge's limits, check the sender
+named in the key, and count every message refused as a drop (``runtime.drops.Drops``: counted by
+reason, the log rate-limited) instead of a log line each."""
 
 from __future__ import annotations
 
-import logging
-from collections import Counter
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
@@ -16,20 +15,31 @@ if TYPE_CHECKING:
 M = TypeVar("M", wire.Scan, wire.Frame)
 
 
-def decode_from_robot(sample: zenoh.Sample, expect: type[M], keys: Keys, counters: Counter[str],
-                      log: logging.Logger, what: str) -> M | None:
-    """A robot's message from a Zenoh sample, or None after counting it as ``malformed`` and
-    logging why: undecodable, or sent under another robot's key."""
-    robot_in_key = keys.robot_of(str(sample.key_expr))
+class DropCounter(Protocol):
+    """What intake needs of ``runtime.drops.Drops`` (protocol/ sits below runtime/)."""
+
+    def drop(self, reason: str, detail: str) -> None: ...
+
+
+def robot_in_key(sample: zenoh.Sample, keys: Keys, drops: DropCounter, what: str) -> str | None:
+    """The robot id a data key names, or None after counting a ``bad_key`` drop."""
+    robot = keys.robot_of(str(sample.key_expr))
+    if robot is None:
+        drops.drop("bad_key", f"{what} on {str(sample.key_expr)[:100]!r}")
+    return robot
+
+
+def decode_from_robot(sample: zenoh.Sample, expect: type[M], robot: str, drops: DropCounter, what: str,
+                      limits: wire.Limits = wire.DEFAULT_LIMITS) -> M | None:
+    """``robot``'s message from a Zenoh sample, or None after counting it as a drop:
+    ``malformed`` (not a valid message of that type within ``limits``) or ``foreign`` (the payload
+    names another robot than the key)."""
     try:
-        msg = wire.decode(sample.payload.to_bytes(), expect=expect)
+        msg = wire.decode(sample.payload.to_bytes(), expect=expect, limits=limits)
     except wire.WireError as exc:
-        counters["malformed"] += 1
-        log.warning("dropped malformed %s on %s: %s (%d so far)", what, sample.key_expr, exc,
-                    counters["malformed"])
+        drops.drop("malformed", f"{what} on {str(sample.key_expr)[:100]}: {exc}")
         return None
-    if msg.robot != robot_in_key:
-        counters["malformed"] += 1
-        log.warning("dropped %s: robot %r in payload, %r in key", what, msg.robot, robot_in_key)
+    if msg.robot != robot:
+        drops.drop("foreign", f"{what}: robot {msg.robot!r} in the payload, {robot!r} in the key")
         return None
     return msg

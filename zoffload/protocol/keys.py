@@ -58,6 +58,9 @@ class Keys:
     def all_scans(self) -> str:
         return f"{self.ns}/data/*/scan"
 
+    def all_scan_acks(self) -> str:
+        return f"{self.ns}/data/*/scan_ack"
+
     def frame(self, robot: str) -> str:
         return f"{self.ns}/data/{check_id(robot, 'robot id')}/frame"
 
@@ -66,6 +69,9 @@ class Keys:
 
     def all_frames(self) -> str:
         return f"{self.ns}/data/*/frame"
+
+    def all_detections(self) -> str:
+        return f"{self.ns}/data/*/detections"
 
     # Control (queryables)
     def map(self, robot: str) -> str:
@@ -103,6 +109,12 @@ class Keys:
 
     def edge_status(self, edge: str) -> str:
         return f"{self.ns}/status/edge/{check_id(edge, 'edge id')}"
+
+    def all_robot_status(self) -> str:
+        return f"{self.ns}/status/*"  # one chunk: not the edges' status/edge/<edge>
+
+    def all_edge_status(self) -> str:
+        return f"{self.ns}/status/edge/*"
 
     # Liveliness
     def edge_alive(self, edge: str) -> str:

@@ -137,7 +137,7 @@ class Scan(Message):
     max_range: float = _num(lo=0.1, hi=10_000.0)  # the sensor's range limit [m]: sizes the mapper
     n_raw: int = _num(lo=0, hi=1e9)  # points before downsampling
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_points"))  # "f32"; empty for "q16z"
-    coding: str = _text("f32", choices=("f32", "q16z"))  # coding.py: q16z quantised + Zstandard
+    coding: str = _text("f32", choices=("f32", "q16z", "q16d"))  # coding.py: quantised (+ Zstandard)
     quant_step: float = _num(0.0, lo=0.0, hi=1.0)
     n_points: int = _num(-1, lo=-1, hi=1e9)  # points in ``packed`` (q16z), checked against max_points
     origin: np.ndarray | None = _array(ArraySpec("<f8", (3,)), optional=True)
@@ -155,11 +155,11 @@ class Scan(Message):
     def cloud_and_times(self, limits: Limits = DEFAULT_LIMITS) -> tuple[np.ndarray, np.ndarray | None]:
         """Points (n, 3) float32 and, when the scan carries them, per-point times in seconds from
         the scan's first point (n,) float64; ``WireError`` if the payload does not decode."""
-        from zoffload.protocol.coding import CodingError, decode_q16z, times_from_u16
+        from zoffload.protocol.coding import DECODERS, CodingError, times_from_u16
 
         if self.coding == "f32":
             pts, q = self.points, self.times
-        else:  # q16z
+        else:  # q16z, q16d
             if self.packed is None or self.origin is None or self.quant_step <= 0 or self.n_points < 0:
                 raise WireError("q16z scan without packed data, origin, step or point count")
             if self.n_points > limits.max_points:
@@ -167,8 +167,8 @@ class Scan(Message):
             if not np.all(np.abs(self.origin) <= ORIGIN_MAX):
                 raise WireError(f"q16z scan origin {self.origin.tolist()} beyond {ORIGIN_MAX:g} m")
             try:
-                pts, q = decode_q16z(self.packed, self.n_points, self.origin, self.quant_step,
-                                     with_times=self.time_span > 0)
+                pts, q = DECODERS[self.coding](self.packed, self.n_points, self.origin, self.quant_step,
+                                               with_times=self.time_span > 0)
             except CodingError as exc:
                 raise WireError(str(exc)) from exc
         if self.time_span <= 0:

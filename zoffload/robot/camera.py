@@ -3,16 +3,18 @@
 Inputs:  an image source (``coco-clips``, a folder, a video), ``<ns>/data/<robot>/detections``
          (wire.Detections), the edges present (the robot server's ``EdgePresence``).
 Outputs: ``<ns>/data/<robot>/frame`` (wire.Frame, put by one sender thread that blocks while the
-         link is busy, newest frame waiting); status values (frame counters, CPU, Mbps, power,
-         ping); results in ``out_dir``: ``frames.csv`` (one row per camera frame),
-         ``detections.npz`` (person boxes of every processed frame), ``vision_metrics.json``,
-         ``monitor.csv``.
+         link is busy, newest frame waiting); ``<ns>/view/<robot>/preview`` (wire.Preview, a few
+         per second while a viewer subscribes: robot/preview.py); status values (frame counters,
+         CPU, Mbps, power, ping); results in ``out_dir``: ``frames.csv`` (one row per camera
+         frame), ``detections.npz`` (person boxes of every processed frame),
+         ``vision_metrics.json``, ``monitor.csv``.
 
 Threads: the camera (paces the source, keeps only the newest frame), this pipeline's loop
 (decides and dispatches, never waits on a detector or on the link), the frame sender (one slot),
-the local detector (one slot), a 1 Hz monitor (CPU, outgoing Mbps, RAPL power, ping-pong RTT to
-the edge). The bookkeeping and the fallback state machine are robot/frames.py's ``FrameBook``;
-every call into it holds ``self._lock``.
+the local detector (one slot; it waits for the strategy's ``local_ready_at``, the pacing that
+keeps it within the robot's CPU budget), the preview publisher, a 1 Hz monitor (CPU, outgoing
+Mbps, RAPL power, ping-pong RTT to the edge). The bookkeeping and the fallback state machine are
+robot/frames.py's ``FrameBook``; every call into it holds ``self._lock``.
 """
 
 from __future__ import annotations
@@ -31,11 +33,12 @@ import numpy as np
 import zenoh
 
 from zoffload.detect.detector import Detections
-from zoffload.policy.offload import EDGE, LOCAL, Strategy, make_strategy
+from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.robot.frames import FRAME_FIELDS, FallbackRules, FrameBook
+from zoffload.robot.frames import FRAME_FIELDS, FallbackRules, FrameBook, RobotView
 from zoffload.robot.presence import EdgePresence
+from zoffload.robot.preview import Offer, PreviewPublisher
 from zoffload.robot.sensor import FrameSource, Reading, SensorThread
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.drops import Drops
@@ -68,6 +71,7 @@ class CameraOptions:
     wait_edge: float = 5.0  # seconds to wait for the edge's subscriber to match at start
     cpu_quota: float | None = None  # reported in the metrics (applied by the server)
     quota_mode: str | None = None
+    preview_period: float = 0.25  # seconds between previews at most (0: no previews)
 
 
 class CameraOffloader:
@@ -89,6 +93,13 @@ class CameraOffloader:
         self._local_slot: Reading | None = None
         self._local_cond = threading.Condition(self._lock)
         self._local_busy = False
+        self._local_started = -math.inf  # when the local detector last started a frame
+        self._local_cpu = 0.0  # CPU seconds the local detector spent so far
+        # The strategy's pacing counts on the robot's CPU budget only where a cgroup enforces it
+        applied = options.quota_mode is not None and options.quota_mode.startswith("cgroup")
+        self._quota = float(options.cpu_quota) if options.cpu_quota and applied else math.nan
+        self._edge_images: dict[int, np.ndarray] = {}  # frames at the edge, kept for previews
+        self.preview: PreviewPublisher | None = None
         self._send_slot: Reading | None = None
         self._send_cond = threading.Condition(self._lock)
         self._stopping = False
@@ -107,6 +118,10 @@ class CameraOffloader:
                                                    self.drops.guard(self._on_result, "detections"))
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
+        if self.opts.preview_period > 0:
+            key = self.keys.preview(self.opts.robot_id)
+            self.preview = PreviewPublisher(session, key, self.opts.robot_id,
+                                            period=self.opts.preview_period).start()
         ping = self.keys.ping(self.opts.robot_id)
         self.monitor = ResourceMonitor(session, ping, lambda: float(self.bytes_sent),
                                        ping_timeout=self.rules.reply_timeout).start()
@@ -125,6 +140,8 @@ class CameraOffloader:
 
     def close(self) -> None:
         self._stop_threads()
+        if self.preview is not None:
+            self.preview.close()
         undeclare(getattr(self, "_det_sub", None), getattr(self, "_pub", None))
 
     # Zenoh callback threads
@@ -145,36 +162,50 @@ class CameraOffloader:
             self.drops.drop("foreign_detections", f"detections for robot {msg.robot!r}")
             return
         keep = msg.classes == 0
+        boxes, scores = msg.boxes[keep].copy(), msg.scores[keep].copy()
         with self._lock:
             bucket = self.book.edge_result(msg.seq, msg.status, now, msg.infer_time, msg.queue_time,
-                                           msg.boxes[keep].copy(), msg.scores[keep].copy())
+                                           boxes, scores)
+            image = self._edge_images.pop(msg.seq, None)
         if bucket == "unknown":
             log.debug("result for frame %d that is not in flight (late or unknown)", msg.seq)
+        elif bucket == "edge_done" and image is not None and self.preview is not None:
+            self.preview.offer(Offer(msg.seq, now, EDGE, image, boxes, scores))
 
     # Local detector (one slot: a newer frame replaces one still waiting)
     def _local_worker(self) -> None:
         while not self.stop.is_set() and not self._stopping:
             with self._local_cond:
-                while self._local_slot is None and not self.stop.is_set() and not self._stopping:
-                    self._local_cond.wait(0.1)
+                while not self.stop.is_set() and not self._stopping:
+                    # A frame, and the strategy's pacing lets the detector start (meanwhile a newer
+                    # frame may take the slot)
+                    wait = 0.1 if self._local_slot is None else self.strategy.local_ready_at - time.time()
+                    if wait <= 0:
+                        break
+                    self._local_cond.wait(min(wait, 0.1))
                 reading, self._local_slot = self._local_slot, None
                 if reading is None:
                     continue
                 self._local_busy = True
-            started = time.time()
+                self._local_started = started = time.time()
+            cpu_start = time.thread_time()  # onnxruntime with one thread runs in this one
             try:
                 det: Detections | None = self.local.detect(reading.frame.image).of_class(0)
             except Exception as exc:  # a bad frame is counted, the worker carries on
                 det = None
                 log.warning("local detection of frame %d failed: %s", reading.seq, exc)
+            cpu = time.thread_time() - cpu_start
             now = time.time()
             with self._lock:
                 self._local_busy = False
+                self._local_cpu += cpu
                 if det is None:
                     self.book.failed(reading.seq)
                 else:
                     self.book.local_result(reading.seq, now, now - started, self.local.last_infer_time,
-                                           det.boxes, det.scores)
+                                           det.boxes, det.scores, cpu=cpu)
+            if det is not None and self.preview is not None:
+                self.preview.offer(Offer(reading.seq, now, LOCAL, reading.frame.image, det.boxes, det.scores))
 
     def _to_local(self, reading: Reading) -> None:
         with self._local_cond:
@@ -184,12 +215,17 @@ class CameraOffloader:
             self._local_cond.notify()
 
     # Edge (one slot: the sender blocks while the link is busy; only the newest frame waits)
-    def _to_edge(self, reading: Reading, probe: bool) -> None:
+    def _to_edge(self, reading: Reading, probe: bool, copy: bool = False) -> None:
         with self._send_cond:
-            self.book.sent(reading.seq, time.time(), probe)
+            self.book.sent(reading.seq, time.time(), probe, copy=copy)
             if self._send_slot is not None:  # the link has not taken the previous one yet
                 self.book.send_replaced(self._send_slot.seq)
+                self._edge_images.pop(self._send_slot.seq, None)
             self._send_slot = reading
+            if self.preview is not None and self.preview.wanted and not copy:
+                self._edge_images[reading.seq] = reading.frame.image
+                while len(self._edge_images) > 16:  # bounded: frames lost on the way leave theirs
+                    del self._edge_images[next(iter(self._edge_images))]
             self._send_cond.notify()
 
     def _encode(self, frame: ImageFrame, seq: int, now: float) -> bytes:
@@ -216,13 +252,13 @@ class CameraOffloader:
                 while self._send_slot is None and not self.stop.is_set() and not self._stopping:
                     self._send_cond.wait(0.1)
                 reading, self._send_slot = self._send_slot, None
-                if reading is None or reading.seq not in self.book.in_flight:
+                if reading is None or not self.book.waiting_to_send(reading.seq):
                     continue  # already booked (lost when the edge went)
             try:
                 data = self._encode(reading.frame, reading.seq, time.time())
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
-                    self.book.failed(reading.seq)
+                    self.book.send_failed(reading.seq)
                 log.error("frame %d: %s", reading.seq, exc)
                 continue
             with self._lock:
@@ -237,15 +273,27 @@ class CameraOffloader:
     def dispatch(self, reading: Reading) -> None:
         with self._lock:
             side, probe = self.book.decide(reading.seq, reading.frame.index, reading.capture_stamp,
-                                           time.time(), *self._smoothed(), self._local_busy)
+                                           time.time(), self._robot_view())
             try:
-                if side == LOCAL:
+                if side in (LOCAL, BOTH):
                     self._to_local(reading)
+                if side == BOTH:  # a copy only measures the edge
+                    self._to_edge(reading, False, copy=True)
                 elif side == EDGE:
                     self._to_edge(reading, probe)
             except Exception as exc:  # one bad frame must not end the run
                 self.book.failed(reading.seq)
                 log.error("frame %d: %s", reading.seq, exc)
+
+    def _robot_view(self) -> RobotView:
+        """The robot side as the strategy sees it (called with the lock held)."""
+        now = time.time()
+        cpu, mbps = self._smoothed()
+        return RobotView(cpu_percent=cpu, mbps_out=mbps, local_busy=self._local_busy,
+                         local_busy_for=now - self._local_started if self._local_busy else 0.0,
+                         local_waiting=self._local_slot is not None, local_last_start=self._local_started,
+                         send_waiting=self._send_slot is not None, cpu_time=time.process_time(),
+                         local_cpu_time=self._local_cpu, cpu_quota=self._quota)
 
     def run(self) -> None:
         self.camera.start()
@@ -355,10 +403,12 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
         from zoffload.detect.detector import Detector
 
         detector = Detector(p.local_model, p.local_model_path, threads=p.local_threads)
-    strategy = make_strategy(p.strategy, p.cpu_max, p.bw_max_mbps or math.inf, p.max_in_flight)
+    dispatch = ({"max_age": p.max_age, "local_bias": p.local_bias, "refresh_period": p.refresh_period,
+                 "cpu_share": p.cpu_share} if p.strategy == "dispatch" else {})
+    strategy = make_strategy(p.strategy, p.cpu_max, p.bw_max_mbps or math.inf, p.max_in_flight, **dispatch)
     rules = FallbackRules(reply_timeout=p.reply_timeout, fallback_losses=p.fallback_losses,
                           probe_period=p.probe_period, resume_after=p.resume_after)
     options = CameraOptions(robot_id=settings.robot_id, fps=p.fps or source.rate_hz, max_frames=p.max_frames,
                             encoding=p.encoding, jpeg_quality=p.jpeg_quality, wait_edge=settings.wait_edge,
-                            cpu_quota=p.cpu_quota, quota_mode=quota_mode)
+                            cpu_quota=p.cpu_quota, quota_mode=quota_mode, preview_period=p.preview_period)
     return CameraOffloader(source, detector, strategy, rules, Keys(settings.namespace), options, stop)

@@ -15,6 +15,10 @@ the robot in fallback too when ``fallback_losses`` frames in a row went unanswer
 back for a whole timeout (a frame lost now and then is the link's loss: counted, and seen by the
 strategy). In fallback one probe frame goes to the edge every ``probe_period`` while an edge is
 present; ``resume_after`` prompt answers in a row end the fallback (hysteresis).
+
+Copies: a strategy may have a frame detected locally *and* sent to the edge only to measure the edge
+(``both``). The frame's bucket is its local result; the copy's answer, loss or replacement is an
+observation for the strategy and a counter (``copies_*``), never a second bucket.
 """
 
 from __future__ import annotations
@@ -27,16 +31,33 @@ from typing import Any
 
 import numpy as np
 
-from zoffload.policy.offload import EDGE, HOLD, OffloadState, Strategy
+from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
 
 log = logging.getLogger("zoffload.robot.frames")
 
 FRAME_FIELDS = ["seq", "index", "capture", "side", "probe", "send", "result", "status", "rtt_ms",
-                "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons"]
-# Final buckets of a camera frame
+                "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons", "copy",
+                "copy_rtt_ms", "est_local_ms", "est_edge_ms"]
+# Final buckets of a camera frame (skipped: no side could finish it while fresh)
 DONE = ("local_done", "edge_done")
-DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "dropped_send", "edge_lost", "edge_dropped",
-           "edge_error", "error")
+DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "dropped_send", "skipped", "edge_lost",
+           "edge_dropped", "edge_error", "error")
+
+
+@dataclass(frozen=True)
+class RobotView:
+    """What the camera pipeline knows of the robot side when a frame arrives."""
+
+    cpu_percent: float = NAN  # process CPU, smoothed (one core = 100)
+    mbps_out: float = NAN
+    local_busy: bool = False  # the local detector is on a frame
+    local_busy_for: float = 0.0  # seconds it has spent on it
+    local_waiting: bool = False  # a frame waits in its slot
+    local_last_start: float = -math.inf
+    send_waiting: bool = False  # a frame waits in the sender's slot
+    cpu_time: float = NAN  # process CPU seconds so far
+    local_cpu_time: float = NAN  # of which the local detector's
+    cpu_quota: float = NAN  # cores (a CFS quota in force), NaN: none
 
 
 @dataclass(frozen=True)
@@ -55,6 +76,7 @@ class FrameBook:
         self.records: dict[int, dict[str, Any]] = {}
         self.persons: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # person boxes and scores
         self.in_flight: dict[int, float] = {}  # seq -> send time
+        self.copies: dict[int, float] = {}  # seq -> send time of a copy (the frame is detected locally)
         self.fallback = False
         self.fallback_events: list[dict[str, float]] = []
         self.edge_present = False
@@ -62,6 +84,8 @@ class FrameBook:
         self._last_probe = -float("inf")
         self._last_reply = -float("inf")
         self._lost_streak = 0
+        self._last_answer = -math.inf  # the edge's last answer to a frame or copy in flight
+        self._last_arrival = -math.inf  # when that frame reached the edge
 
     # Frames in, decisions out
     def camera_dropped(self, n: int) -> None:
@@ -69,10 +93,12 @@ class FrameBook:
         self.counters["frames_in"] += n
         self.counters["dropped_camera"] += n
 
-    def decide(self, seq: int, index: int, capture: float, now: float, cpu_percent: float = float("nan"),
-               mbps_out: float = float("nan"), local_busy: bool = False) -> tuple[str, bool]:
-        """Book a new frame and choose its side (``local``, ``edge`` or ``hold``); the second value
-        says whether it is a fallback probe. A held frame is finished here (``dropped_window``)."""
+    def decide(self, seq: int, index: int, capture: float, now: float,
+               robot: RobotView | None = None) -> tuple[str, bool]:
+        """Book a new frame and choose its side: ``local``, ``edge``, ``both`` (local, plus a copy to
+        the edge), ``hold`` or ``skip``; the second value says whether it is a fallback probe. A
+        held or skipped frame is finished here (``dropped_window``, ``skipped``)."""
+        r = robot or RobotView()
         self.records[seq] = {"seq": seq, "index": index, "capture": capture, "status": "pending"}
         self.counters["frames_in"] += 1
         probe = (self.fallback and self.edge_present and not self.in_flight
@@ -82,24 +108,53 @@ class FrameBook:
             side = EDGE
         else:
             oldest = min(self.in_flight.values(), default=now)
+            sends = sorted([*self.in_flight.items(), *self.copies.items()], key=lambda kv: kv[1])
             side = self.strategy.decide(OffloadState(
-                now=now, edge_available=self.edge_present and not self.fallback, cpu_percent=cpu_percent,
-                mbps_out=mbps_out, oldest_in_flight_age=now - oldest, in_flight=len(self.in_flight),
-                local_busy=local_busy))
-        self.records[seq]["side"] = side
-        if side == HOLD:  # the edge's window is full and local is slower: skip this one
+                now=now, edge_available=self.edge_present and not self.fallback, cpu_percent=r.cpu_percent,
+                mbps_out=r.mbps_out, oldest_in_flight_age=now - oldest, in_flight=len(self.in_flight),
+                local_busy=r.local_busy, capture=capture, local_busy_for=r.local_busy_for,
+                local_waiting=r.local_waiting, local_last_start=r.local_last_start,
+                send_waiting=r.send_waiting,
+                edge_sends=tuple((t, float(self.records[k].get("bytes", NAN))) for k, t in sends),
+                cpu_time=r.cpu_time, local_cpu_time=r.local_cpu_time, cpu_quota=r.cpu_quota))
+        self.records[seq]["side"] = LOCAL if side == BOTH else side
+        estimates = getattr(self.strategy, "estimates", None)
+        if estimates is not None and not probe:  # the strategy's expected finish, ms after capture
+            self.records[seq].update(est_local_ms=(estimates[0] - capture) * 1e3,
+                                     est_edge_ms=(estimates[1] - capture) * 1e3)
+        if side == HOLD:  # the edge's window is full and local is slower: hold this one back
             self.finish(seq, "dropped_window")
+        elif side == SKIP:  # no side would finish it while it is fresh
+            self.finish(seq, "skipped")
         return side, probe
 
-    def sent(self, seq: int, now: float, probe: bool) -> None:
-        """The frame is handed to the sender: in flight (its timeout runs) from now on."""
+    def sent(self, seq: int, now: float, probe: bool, copy: bool = False) -> None:
+        """The frame (or its copy) is handed to the sender: in flight, its timeout runs from now on."""
+        if copy:
+            self.records[seq].update(copy=1)
+            self.copies[seq] = now
+            return
         self.records[seq].update(send=now, probe=int(probe))
         self.in_flight[seq] = now
 
     def send_replaced(self, seq: int) -> None:
-        """A frame still waiting for the link when a newer one took its place."""
+        """A frame (or copy) still waiting for the link when a newer one took its place."""
+        if self.copies.pop(seq, None) is not None:
+            self.counters["copies_replaced"] += 1
+            return
         self.in_flight.pop(seq, None)
         self.finish(seq, "dropped_send")
+
+    def send_failed(self, seq: int) -> None:
+        """The frame could not be encoded for the link (a copy's frame is still detected locally)."""
+        if self.copies.pop(seq, None) is not None:
+            self.counters["copies_failed"] += 1
+            return
+        self.failed(seq)
+
+    def waiting_to_send(self, seq: int) -> bool:
+        """Whether the sender should still put this frame (or copy): not booked meanwhile."""
+        return seq in self.in_flight or seq in self.copies
 
     def local_replaced(self, seq: int) -> None:
         """A frame still waiting for the local detector when a newer one took its place."""
@@ -116,13 +171,13 @@ class FrameBook:
 
     # Results
     def local_result(self, seq: int, now: float, service: float, infer_time: float,
-                     boxes: np.ndarray, scores: np.ndarray) -> None:
+                     boxes: np.ndarray, scores: np.ndarray, cpu: float | None = None) -> None:
         rec = self.records[seq]
         rec.update(result=now, rtt_ms=(now - rec["capture"]) * 1e3, local_infer_ms=infer_time * 1e3,
                    n_persons=len(scores))
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "local_done")
-        self.strategy.on_local_result(now - rec["capture"], service=service)
+        self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
                     boxes: np.ndarray, scores: np.ndarray) -> str:
@@ -131,28 +186,61 @@ class FrameBook:
         self._last_reply = now
         self._lost_streak = 0
         sent = self.in_flight.pop(seq, None)
+        copy_sent = self.copies.pop(seq, None) if sent is None else None
         rec = self.records.get(seq)
-        if sent is None or rec is None:
+        sent_at = sent if sent is not None else copy_sent
+        if sent_at is None or rec is None:
             self.counters["late_or_unknown_results"] += 1
             return "unknown"
+        reply = self._reply(rec, sent_at, now, infer_time, queue_time, status)
+        if sent is None:  # a copy: a measurement only, the frame is detected locally
+            rec["copy_rtt_ms"] = (now - sent_at) * 1e3
+            self.counters["copies_answered"] += 1
+            if status == "ok":
+                self.strategy.on_edge_result(now - rec["capture"], reply)
+            else:
+                self.strategy.on_edge_refused(reply, self.rules.reply_timeout)
+            return "copy"
         rec.update(result=now, edge_infer_ms=infer_time * 1e3, edge_queue_ms=queue_time * 1e3)
         if status != "ok":
             bucket = "edge_dropped" if status == "dropped" else "edge_error"
             self.finish(seq, bucket)
-            self.strategy.on_edge_timeout(self.rules.reply_timeout)
+            self.strategy.on_edge_refused(reply, self.rules.reply_timeout)
             return bucket
         rtt = now - rec["capture"]
         rec.update(rtt_ms=rtt * 1e3, n_persons=len(scores))
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "edge_done")
-        self.strategy.on_edge_result(rtt)
+        self.strategy.on_edge_result(rtt, reply)
         if rec.get("probe"):
             self._probe_answered(now - sent, now)
         return "edge_done"
 
+    def _reply(self, rec: dict[str, Any], sent: float, now: float, service: float, queued_at_edge: float,
+               status: str) -> EdgeReply:
+        """The answer as the strategy sees it. A frame sent before the previous (detected) one even
+        reached the edge waited behind it on the link: the gap between their answers is the link's
+        time for this frame's bytes, a sample of the rate it delivers (frames sent later would count
+        idle time too)."""
+        nbytes = float(rec.get("bytes", NAN))
+        if status != "ok":  # an overflowing edge answers at once: no sample of its pace
+            return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
+        queued = sent < self._last_arrival and self._last_answer < now
+        rate = nbytes / (now - self._last_answer) if queued and math.isfinite(nbytes) else NAN
+        self._last_answer = now
+        edge_time = sum(x for x in (service, queued_at_edge) if math.isfinite(x))
+        self._last_arrival = now - edge_time  # when it reached the edge, near enough (robot clock)
+        return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,
+                         status=status)
+
     # Losses and fallback
     def expire(self, now: float) -> list[int]:
-        """Book every edge frame unanswered for ``reply_timeout`` as lost; returns their seqs."""
+        """Book every edge frame unanswered for ``reply_timeout`` as lost; returns their seqs. An
+        unanswered copy is only an observation."""
+        for seq, sent in [(k, t) for k, t in self.copies.items() if now - t > self.rules.reply_timeout]:
+            del self.copies[seq]
+            self.counters["copies_lost"] += 1
+            self.strategy.on_edge_timeout(now - sent)
         overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.rules.reply_timeout]
         for seq in overdue:
             self._book_lost(seq, now)
@@ -169,6 +257,8 @@ class FrameBook:
         """The edge-presence watcher's news: the last edge gone books everything in flight lost."""
         self.edge_present = present
         if not present:
+            self.counters["copies_lost"] += len(self.copies)
+            self.copies.clear()
             for seq in list(self.in_flight):
                 self._book_lost(seq, now)
             self._enter_fallback(now, "edge liveliness lost")
@@ -204,6 +294,8 @@ class FrameBook:
         waiting for the local detector."""
         if send_waiting is not None:
             self.send_replaced(send_waiting)
+        self.counters["copies_lost"] += len(self.copies)
+        self.copies.clear()
         for seq in list(self.in_flight):
             self._book_lost(seq, now)
         if local_waiting is not None:

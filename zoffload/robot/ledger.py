@@ -1,40 +1,58 @@
 """Per-scan bookkeeping on the robot: every scan ends in exactly one bucket.
 
-    produced  = published + dropped at source (by reason)
-    published = acked + edge_dropped + edge_error + lost + late + in_flight
+    produced  = published + dropped at source (by reason) + sending
+    published = acked + edge_dropped + edge_error + edge_refused + lost + late + in_flight
 
-``lost``: no ack within the timeout. ``late``: its ack came after that (moved out of ``lost``).
-Round-trip times use the robot's clock only: the send stamp travels with the scan and is echoed.
+``sending``: handed to the sender thread, not published yet (at most two: the one it is encoding
+and the one waiting in its slot). ``edge_refused``: the edge did not admit this robot (allowlist,
+``max_robots``). ``lost``: no ack within the timeout. ``late``: its ack came after that (moved out
+of ``lost``). Round-trip times use the robot's clock only: the send stamp travels with the scan
+and is echoed. The ledger also keeps what the scale policy reads about the link: the last acked
+scans (bytes, network time, T, slot), the bytes acked in the last second, the last ack's time.
 """
 
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from zoffload.policy.rate import AckInfo
 from zoffload.protocol import wire
+from zoffload.robot.scanlog import ScanLog
 
-RECORD_FIELDS = (
-    "seq", "index", "capture_stamp", "voxel", "n_raw", "n_nonfinite", "n_sent", "bytes",
-    "work_ms", "send_stamp", "status", "rtt", "network_time", "interarrival", "queue_time",
-    "proc_time", "map_points", "keypoints", "sigma",
-)
+ACK_BUCKETS = {"ok": "acked", "dropped": "edge_dropped", "refused": "edge_refused"}
 
 
 @dataclass
 class ScanLedger:
-    records: dict[int, dict[str, Any]] = field(default_factory=dict)
-    poses: dict[int, np.ndarray] = field(default_factory=dict)
-    gt_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    log: ScanLog = field(default_factory=ScanLog)  # the records, bounded (robot/scanlog.py)
     counters: Counter[str] = field(default_factory=Counter)
     dropped_source: Counter[str] = field(default_factory=Counter)
     pending: dict[int, float] = field(default_factory=dict)  # seq -> send stamp
+    sending: set[int] = field(default_factory=set)  # handed to the sender, not published yet
     last_interarrival: float = 0.0  # T_{n-1}; 0 before any ack (the paper's T0)
+    last_slot: int = 1  # the slot of the scan ``last_interarrival`` came with
     interarrivals_seen: int = 0  # how many acks have brought a T (a policy reacts to new ones)
+    last_ack_at: float = -math.inf  # robot clock of the newest ack, any status
+    first_acked_at: float | None = None  # robot clock of the first scan acked "ok"
+    recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
+    _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
+
+    @property
+    def records(self) -> dict[int, dict[str, Any]]:
+        return self.log.records
+
+    @property
+    def poses(self) -> dict[int, np.ndarray]:
+        return self.log.poses
+
+    @property
+    def gt_poses(self) -> dict[int, np.ndarray]:
+        return self.log.gt_poses
 
     def produced(self, n: int = 1) -> None:
         self.counters["produced"] += n
@@ -42,36 +60,54 @@ class ScanLedger:
     def drop_at_source(self, seq: int | None, reason: str, record: dict[str, Any] | None = None) -> None:
         self.dropped_source[reason] += 1
         if seq is not None:
-            rec = dict(record or {}, seq=seq, status=f"source:{reason}")
-            self.records[seq] = rec
+            self.sending.discard(seq)
+            self.records[seq] = dict(self.records.get(seq, {}), **(record or {}), seq=seq,
+                                     status=f"source:{reason}")
+            self.log.trim()
+
+    def handed_off(self, seq: int, record: dict[str, Any]) -> None:
+        """Sized and given to the sender thread."""
+        self.sending.add(seq)
+        self.records[seq] = dict(record, seq=seq, status="sending")
+        self.log.trim()
 
     def published(self, seq: int, send_stamp: float, record: dict[str, Any]) -> None:
+        self.sending.discard(seq)
         self.counters["published"] += 1
         self.pending[seq] = send_stamp
-        self.records[seq] = dict(record, seq=seq, send_stamp=send_stamp, status="in_flight")
+        self.records[seq] = dict(self.records.get(seq, {}), **record, seq=seq, send_stamp=send_stamp,
+                                 status="in_flight")
 
     def on_ack(self, ack: wire.ScanAck, recv_stamp: float) -> str:
         """Book an ack; returns the bucket it landed in ("acked", "edge_dropped", "edge_error",
-        "late", "duplicate" or "unknown")."""
+        "edge_refused", "late", "duplicate" or "unknown")."""
         rec = self.records.get(ack.seq)
         if rec is None or "send_stamp" not in rec or rec["send_stamp"] != ack.send_stamp:
             self.counters["unknown_acks"] += 1
             return "unknown"
+        self.last_ack_at = recv_stamp
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
         rec.update(rtt=rtt, network_time=rtt - edge_time, interarrival=ack.interarrival,
                    queue_time=ack.queue_time, proc_time=ack.proc_time, map_points=ack.map_points,
                    keypoints=ack.keypoints, sigma=ack.sigma)
+        slot = int(rec.get("skipped") or 0) + 1
         if math.isfinite(ack.interarrival):
             self.last_interarrival = ack.interarrival
+            self.last_slot = slot
             self.interarrivals_seen += 1
         if ack.seq in self.pending:
             del self.pending[ack.seq]
-            bucket = {"ok": "acked", "dropped": "edge_dropped"}.get(ack.status, "edge_error")
+            bucket = ACK_BUCKETS.get(ack.status, "edge_error")
             self.counters[bucket] += 1
             rec["status"] = bucket
             if bucket == "acked":
                 self.poses[ack.seq] = np.array(ack.pose)
+                nbytes = int(rec.get("bytes") or 0)
+                self.recent.append(AckInfo(nbytes, rtt - edge_time, ack.interarrival, slot))
+                self._acked_bytes.append((recv_stamp, nbytes))
+                if self.first_acked_at is None:
+                    self.first_acked_at = recv_stamp
             return bucket
         if rec.get("status") == "lost":
             self.counters["lost"] -= 1
@@ -80,6 +116,15 @@ class ScanLedger:
             return "late"
         self.counters["duplicate_acks"] += 1
         return "duplicate"
+
+    def acked_bytes_per_s(self, now: float) -> float:
+        """Bytes of the scans acked in the last second; NaN until acks span a full second (two
+        acks in the first 0.2 s are not a rate)."""
+        while self._acked_bytes and self._acked_bytes[0][0] < now - 1.0:
+            self._acked_bytes.popleft()
+        if self.first_acked_at is None or self.first_acked_at > now - 1.0:
+            return math.nan
+        return float(sum(b for _, b in self._acked_bytes))
 
     def expire(self, now: float, timeout: float) -> int:
         """Declare lost every scan unanswered for ``timeout`` seconds; returns how many."""
@@ -91,7 +136,9 @@ class ScanLedger:
         return len(expired)
 
     def finish(self) -> None:
-        """End of run: whatever is still unanswered is lost."""
+        """End of run: whatever is still unanswered is lost, whatever was never sent is unsent."""
+        for seq in list(self.sending):
+            self.drop_at_source(seq, "unsent")
         self.expire(float("inf"), 0.0)
 
     @property
@@ -104,9 +151,11 @@ class ScanLedger:
             "produced": c["produced"],
             "published": c["published"],
             "dropped_source": sum(self.dropped_source.values()),
+            "sending": len(self.sending),
             "acked": c["acked"],
             "edge_dropped": c["edge_dropped"],
             "edge_error": c["edge_error"],
+            "edge_refused": c["edge_refused"],
             "lost": c["lost"],
             "late": c["late"],
             "in_flight": self.in_flight,
@@ -115,7 +164,7 @@ class ScanLedger:
     def balanced(self) -> bool:
         b = self.balance()
         return (
-            b["produced"] == b["published"] + b["dropped_source"]
-            and b["published"]
-            == b["acked"] + b["edge_dropped"] + b["edge_error"] + b["lost"] + b["late"] + b["in_flight"]
+            b["produced"] == b["published"] + b["dropped_source"] + b["sending"]
+            and b["published"] == b["acked"] + b["edge_dropped"] + b["edge_error"] + b["edge_refused"]
+            + b["lost"] + b["late"] + b["in_flight"]
         )

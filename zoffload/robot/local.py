@@ -26,6 +26,8 @@ class LocalRun:
     mapper: RobotMapper | None = None
     overrun: int = 0
     gt: dict[int, np.ndarray] = field(default_factory=dict)
+    cpu_s: float = 0.0  # the process's CPU time over the run (KISS-ICP is multithreaded)
+    sensor_cpu_s: float = 0.0  # of which the sensor thread's (replay, simulator)
 
 
 def run_local(source: ScanSource, rate_hz: float, replay: str, max_scans: int | None,
@@ -35,6 +37,7 @@ def run_local(source: ScanSource, rate_hz: float, replay: str, max_scans: int | 
                          max_range=source.max_range, map_resolution=map_resolution)
     run.mapper = mapper
     sensor = SensorThread(source, rate_hz, replay, max_scans)
+    cpu0 = time.process_time()
     sensor.start()
     last: float | None = None
     try:
@@ -61,4 +64,5 @@ def run_local(source: ScanSource, rate_hz: float, replay: str, max_scans: int | 
     finally:
         sensor.stop()
     run.overrun = sensor.overwritten
+    run.cpu_s, run.sensor_cpu_s = time.process_time() - cpu0, sensor.cpu_s
     return run

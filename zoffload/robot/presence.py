@@ -19,6 +19,7 @@ from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.robot.presence")
 
+MAX_EDGES = 256
 # (edge id, present now?, the edges present after this change)
 Listener = Callable[[str, bool, frozenset[str]], None]
 
@@ -54,6 +55,10 @@ class EdgePresence:
             return
         present = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
+            if present and edge not in self._edges and len(self._edges) >= MAX_EDGES:
+                # without an ACL anyone may declare edge tokens: the set stays bounded
+                self.drops.drop("too_many_edges", f"edge token {edge!r} beyond {MAX_EDGES} edges")
+                return
             if present:
                 self._edges.add(edge)
                 self._seen.set()

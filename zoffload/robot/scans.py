@@ -1,21 +1,27 @@
-"""The robot's scan pipeline: replays a scan source at sensor rate, downsamples each scan with the
-scale policy's voxel size, streams it to the edge, books every ack.
+"""The robot's scan pipeline: replays a scan source at sensor rate, sizes each scan with the scale
+policy, streams it to the edge, books every ack.
 
 Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck), the
          edges present (the robot server's ``EdgePresence``).
 Outputs: ``<ns>/data/<robot>/scan`` (wire.Scan, congestion control BLOCK_FIRST: the first scan that
-         meets a full queue waits, newer ones are dropped at source and counted, never in pieces);
-         status values for the robot's 1 Hz status message; results in ``out_dir`` (metrics,
-         per-scan CSV, poses).
+         meets a full queue waits, on the sender thread; newer ones replace it in the sender's slot
+         and are counted, never sent in pieces); status values for the robot's 1 Hz status
+         message; results in ``out_dir`` (metrics, per-scan CSV, poses).
+
+Three parts, kept apart: sizing (robot/sizer.py: policy, grid pass, payload layout, on the loop
+thread), sending (robot/sender.py: compression, the wire message and ``put()`` on their own
+thread) and booking (robot/ledger.py). The robot's CPU time per scan is measured on both threads
+(``time.thread_time``) and reported with the process's whole CPU time.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
+import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,17 +29,18 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from zoffload.mapping.cloud import drop_non_finite
-from zoffload.mapping.voxel import voxel_downsample, warmup
+from zoffload.mapping.voxel import warmup
 from zoffload.policy.onnx_scale import load_scale_policy
-from zoffload.policy.rate import LinkAwareScale, LinkView
+from zoffload.policy.rate import LinkView
 from zoffload.policy.scale import ScalePolicy
-from zoffload.protocol import wire
-from zoffload.protocol.coding import encode_q16z, quant_step
+from zoffload.protocol import coding, wire
 from zoffload.protocol.keys import Keys
-from zoffload.robot.ledger import RECORD_FIELDS, ScanLedger
+from zoffload.robot.ledger import ScanLedger
 from zoffload.robot.presence import EdgePresence
+from zoffload.robot.scanlog import ScanLog, ScanTotals
+from zoffload.robot.sender import Sender
 from zoffload.robot.sensor import Reading, SensorThread
+from zoffload.robot.sizer import ScanSizer, Sized, finish, scan_message
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
@@ -41,6 +48,8 @@ from zoffload.runtime.session import undeclare
 from zoffload.sources import ScanSource, open_scan_source
 
 log = logging.getLogger("zoffload.robot.scans")
+
+DELIBERATE = ("pace", "skip", "stall")  # scans the policy chose not to send: announced in ``skipped``
 
 
 @dataclass(frozen=True)
@@ -52,14 +61,26 @@ class StreamOptions:
     replay: str = "once"
     max_scans: int | None = None
     voxel_range: tuple[float, float] = (0.01, 0.07)
-    coding: str = "q16z"  # "f32" or "q16z"
+    coding: str = "q16d"  # "f32", "q16z" or "q16d"
     quant_fraction: float = 0.1
+    zstd_level: int = 1  # q16d's compression level
     ack_timeout: float = 1.0
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
+    out_dir: Path | None = None  # records retire onto disk here as the run goes (robot/scanlog.py)
+    keep_records: int = 4096  # records held in memory
+
+
+@dataclass
+class _Outgoing:
+    seq: int
+    capture_stamp: float
+    n_raw: int
+    sized: Sized
+    cpu_loop: float  # seconds of the loop thread's CPU for this scan
 
 
 class ScanStreamer:
-    """A pipeline (robot/pipeline.py): sensor thread → downsample → publish → book acks."""
+    """A pipeline (robot/pipeline.py): sensor thread → size → sender thread → book acks."""
 
     name = "scans"
 
@@ -70,33 +91,47 @@ class ScanStreamer:
         self.keys = keys
         self.opts = options
         self.stop = stop
-        self.ledger = ScanLedger()
+        self.ledger = ScanLedger(ScanLog(options.keep_records, options.out_dir))
         self.drops = Drops(log)
-        self._lock = threading.Lock()  # the ack callback and the loop share the ledger
-        self.voxel = self.policy.reset()
+        self._lock = threading.Lock()  # the ack callback, the loop and the sender share the ledger
+        self.sizer = ScanSizer(policy, options.coding, options.quant_fraction)
+        self.sender: Sender[_Outgoing] = Sender(self._send, name="scan-sender")
         self.presence: EdgePresence | None = None
         self._sensor: SensorThread | None = None
         self._booked_overwrites = 0
+        self._skipped: deque[int] = deque()  # deliberately skipped since the last scan sent
+        self._coded: deque[tuple[int, int]] = deque(maxlen=5)  # (bytes, points) of compressed scans
+        self._refused_at = -math.inf
+        self._cpu = {"process_s": 0.0, "sensor_s": 0.0, "wall_s": 0.0}
+
+    @property
+    def voxel(self) -> float:
+        return self.sizer.voxel
 
     # Startup
     def start(self, session: zenoh.Session, presence: EdgePresence) -> None:
-        warmup()  # compile the voxel kernel before the first scan, not during it
+        warmup()  # compile the kernels before the first scan, not during it
+        coding.warmup()
         self.presence = presence
         robot = self.opts.robot_id
         self._ack_sub = session.declare_subscriber(self.keys.scan_ack(robot),
                                                    self.drops.guard(self._on_ack, "ack"))
-        # BLOCK_FIRST: on a congested link the first scan waits for room (the loop blocks; the
-        # sensor's newer scans are dropped at source and counted) and others are dropped whole.
-        # With DROP every fragment of a large scan gets only 50 ms to find room, so on a narrow
-        # link every large scan loses some fragments and none reassembles (KITTI-360 raw at
-        # 20 Mbps: 0 of 100 scans received with DROP, 16 with BLOCK_FIRST).
+        # BLOCK_FIRST: on a congested link the first scan waits for room (on the sender thread;
+        # newer scans replace it in its slot) and others are dropped whole. With DROP every
+        # fragment of a large scan gets only 50 ms to find room, so on a narrow link every large
+        # scan loses some fragments and none reassembles (KITTI-360 raw at 20 Mbps: 0 of 100 scans
+        # received with DROP, 16 with BLOCK_FIRST).
         self._scan_pub = session.declare_publisher(
             self.keys.scan(robot), congestion_control=zenoh.CongestionControl.BLOCK_FIRST)
+        self.sender.start()
         log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
                  self.policy.name, self.opts.coding)
 
     def close(self) -> None:
         undeclare(getattr(self, "_ack_sub", None), getattr(self, "_scan_pub", None))
+        close = getattr(self.source, "close", None)  # a ROS 2 topic's session, a bag's file
+        if close is not None:
+            close()
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         recv = time.monotonic()
@@ -114,83 +149,116 @@ class ScanStreamer:
             self.drops.drop("foreign_ack", f"ack from {ack.edge!r}, not a present edge")
             return
         with self._lock:
-            self.ledger.on_ack(ack, recv)
+            bucket = self.ledger.on_ack(ack, recv)
+            refused = self.ledger.counters["edge_refused"]
+        if bucket == "edge_refused" and recv - self._refused_at >= 1.0:  # one line a second at most
+            self._refused_at = recv
+            log.warning("edge %s refused scan %d (%d refused so far): %s", ack.edge or "?", ack.seq,
+                        refused, ack.detail[:200])
 
-    # Per-scan work
+    # Per-scan work (the loop thread)
     def process(self, reading: Reading) -> None:
-        t0 = time.perf_counter()
-        pts, n_nonfinite = drop_non_finite(reading.frame.points)
-        record: dict[str, Any] = {"index": reading.frame.index, "capture_stamp": reading.capture_stamp,
-                                  "n_raw": len(pts), "n_nonfinite": n_nonfinite}
-        if reading.frame.gt_pose is not None:
-            self.ledger.gt_poses[reading.seq] = reading.frame.gt_pose
+        c0, t0 = time.thread_time(), time.perf_counter()
+        frame = reading.frame
+        record: dict[str, Any] = {"index": frame.index, "capture_stamp": reading.capture_stamp,
+                                  "n_raw": len(frame.points)}
+        if frame.gt_pose is not None:
+            self.ledger.gt_poses[reading.seq] = frame.gt_pose
         edge_present = self.presence is not None and self.presence.any
         with self._lock:
-            if len(pts) == 0:
-                self.ledger.drop_at_source(reading.seq, "empty", record)
-                return
             if not edge_present:
                 self.ledger.drop_at_source(reading.seq, "edge_absent", record)
                 return
             if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 return
-            last_t = self.ledger.last_interarrival
-        # Choose the voxel size, downsample
-        if isinstance(self.policy, LinkAwareScale):
-            self.voxel, down = self.policy.choose_cloud(pts, self._link_view())
-            down = down.astype(np.float32)
-        else:
-            self.voxel = self.policy.choose(last_t, self.voxel)
-            down = voxel_downsample(pts, self.voxel).astype(np.float32) if self.voxel > 0 else pts
-        # Encode and send
-        send_stamp = time.monotonic()
-        data = wire.encode(self._scan_message(reading, send_stamp, len(pts), down))
-        record.update(voxel=self.voxel, n_sent=len(down), bytes=len(data))
+        # Size: the policy's choice, the grid pass, the payload's layout
+        sized = self.sizer.size(frame.points, getattr(frame, "times", None), self._link_view)
+        d = sized.decision
+        record.update(voxel=sized.voxel, n_raw=sized.n_valid, n_nonfinite=sized.n_invalid, reason=d.reason)
+        cpu_loop = time.thread_time() - c0
+        record.update(cpu_loop_ms=cpu_loop * 1e3, cpu_ms=cpu_loop * 1e3,
+                      work_ms=(time.perf_counter() - t0) * 1e3)
+        if sized.skip or sized.n_points == 0:
+            reason = d.cause if sized.skip else "empty"
+            with self._lock:
+                self.ledger.drop_at_source(reading.seq, reason, record)
+                if reason in DELIBERATE:
+                    self._skipped.append(reading.seq)
+            self.sizer.pool.give(sized.buffer)
+            return
+        record.update(n_sent=sized.n_points, coding=sized.coding)
+        # Hand over to the sender thread: the loop goes back to the sensor whatever the link does
         with self._lock:
-            self.ledger.published(reading.seq, send_stamp, record)
-        self._scan_pub.put(data)
-        work_ms = (time.perf_counter() - t0) * 1e3
-        with self._lock:
-            self.ledger.records[reading.seq]["work_ms"] = work_ms
+            self.ledger.handed_off(reading.seq, record)
+        out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop)
+        replaced = self.sender.offer(out)
+        if replaced is not None:
+            with self._lock:
+                self.ledger.drop_at_source(replaced.seq, "replaced")
+            self.sizer.pool.give(replaced.sized.buffer)
+
+    # Sending (the sender thread)
+    def _send(self, item: _Outgoing) -> None:
+        c0 = time.thread_time()
+        sized = item.sized
+        try:
+            compressed = finish(sized, self.opts.zstd_level)
+            with self._lock:  # deliberate skips since the last scan sent, before this one
+                skipped = 0
+                while self._skipped and self._skipped[0] < item.seq:
+                    self._skipped.popleft()
+                    skipped += 1
+            send_stamp = time.monotonic()
+            o = self.opts
+            data = wire.encode(scan_message(
+                sized, robot=o.robot_id, seq=item.seq, send_stamp=send_stamp,
+                capture_stamp=item.capture_stamp, voxel_max=o.voxel_range[1],
+                max_range=self.source.max_range, n_raw=item.n_raw, skipped=skipped))
+            with self._lock:
+                self.ledger.published(item.seq, send_stamp, {"bytes": len(data), "skipped": skipped,
+                                                             "compressed": compressed})
+                if compressed or sized.coding != "q16d":
+                    self._coded.append((len(data), sized.n_points))
+            self._scan_pub.put(data)
+        except Exception as exc:  # not published: the scan is booked, the thread carries on
+            with self._lock:
+                if item.seq in self.ledger.sending:
+                    self.ledger.drop_at_source(item.seq, "error")
+            log.error("scan %d not sent: %s", item.seq, exc)
+        finally:
+            self.sizer.pool.give(sized.buffer)
+            cpu_send = time.thread_time() - c0
+            with self._lock:
+                rec = self.ledger.records.get(item.seq)
+                if rec is not None:
+                    rec["cpu_send_ms"] = cpu_send * 1e3
+                    rec["cpu_ms"] = (item.cpu_loop + cpu_send) * 1e3
 
     def _link_view(self) -> LinkView:
-        """The link as the acks show it: last T, bytes acked in the last second, bytes per point."""
+        """The link as the acks show it (the ledger keeps the figures up to date on every ack)."""
         now = time.monotonic()
         with self._lock:
-            recs = list(self.ledger.records.values())[-60:]
-            last_t = self.ledger.last_interarrival
-            seen = self.ledger.interarrivals_seen
-        acked = [r for r in recs if r.get("status") == "acked" and "rtt" in r]
-        recent = [r for r in acked if r["send_stamp"] + r["rtt"] >= now - 1.0]
-        # a rate needs a full second of acks behind it: two acks in the first 0.2 s are not 10 Hz
-        young = not acked or min(r["send_stamp"] + r["rtt"] for r in acked) > now - 1.0
-        sent = [r for r in recs if r.get("bytes") and r.get("n_sent")][-5:]
-        return LinkView(
-            last_t=last_t,
-            acked_bytes_per_s=float("nan") if young else float(sum(r["bytes"] for r in recent)),
-            bytes_per_point=(sum(r["bytes"] for r in sent) / sum(r["n_sent"] for r in sent)) if sent
-            else float("nan"),
-            period=1.0 / self.opts.rate_hz,
-            acks=seen)
-
-    def _scan_message(self, reading: Reading, send_stamp: float, n_raw: int, down: np.ndarray) -> wire.Scan:
-        o = self.opts
-        common: dict[str, Any] = dict(
-            robot=o.robot_id, seq=reading.seq, send_stamp=send_stamp, capture_stamp=reading.capture_stamp,
-            voxel=self.voxel, voxel_max=max(o.voxel_range[1], self.voxel), max_range=self.source.max_range,
-            n_raw=n_raw)
-        if o.coding == "q16z":
-            origin, step, blob = encode_q16z(down, quant_step(self.voxel, o.quant_fraction), widen=True)
-            return wire.Scan(**common, points=np.zeros((0, 3), np.float32), coding="q16z",
-                             quant_step=step, n_points=len(down), origin=origin,
-                             packed=np.frombuffer(blob, np.uint8))
-        return wire.Scan(**common, points=np.ascontiguousarray(down, np.float32))
+            led = self.ledger
+            coded = list(self._coded)
+            return LinkView(
+                last_t=led.last_interarrival,
+                acked_bytes_per_s=led.acked_bytes_per_s(now),
+                bytes_per_point=sum(b for b, _ in coded) / max(1, sum(n for _, n in coded)) if coded
+                else math.nan,
+                period=1.0 / self.opts.rate_hz,
+                acks=led.interarrivals_seen,
+                last_slot=led.last_slot,
+                recent=tuple(led.recent),
+                since_ack=now - led.last_ack_at if math.isfinite(led.last_ack_at) else 0.0,
+                in_flight=led.in_flight,
+                raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
     # Main loop
     def run(self) -> None:
         o = self.opts
         sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
+        p0, w0 = time.process_time(), time.monotonic()
         sensor.start()
         try:
             while not self.stop.is_set():
@@ -216,6 +284,8 @@ class ScanStreamer:
                 self.ledger.counters["read_errors"] += sensor.read_errors
                 self._book_overwrites(sensor)
             self._drain()
+            self._cpu = {"process_s": time.process_time() - p0, "sensor_s": sensor.cpu_s,
+                         "wall_s": time.monotonic() - w0}
 
     def _book_overwrites(self, sensor: SensorThread) -> None:
         """Scans the sensor replaced before the loop took them: produced, dropped at source."""
@@ -226,8 +296,12 @@ class ScanStreamer:
         self._booked_overwrites += new
 
     def _drain(self) -> None:
-        """Give in-flight scans their ack timeout, then book the rest as lost."""
+        """Let the sender finish, give in-flight scans their ack timeout, book the rest as lost."""
         deadline = time.monotonic() + self.opts.ack_timeout
+        left = self.sender.close(timeout=self.opts.ack_timeout)
+        with self._lock:
+            if left is not None:
+                self.ledger.drop_at_source(left.seq, "unsent")
         while time.monotonic() < deadline:
             with self._lock:
                 if self.ledger.in_flight == 0:
@@ -241,73 +315,89 @@ class ScanStreamer:
             values = {k: float(v) for k, v in self.ledger.balance().items()}
             values["voxel"] = float(self.voxel)
             values["last_T"] = float(self.ledger.last_interarrival)
-            recent = [r for r in list(self.ledger.records.values())[-20:] if "rtt" in r]
-        if recent:
-            values["rtt_ms"] = float(np.mean([r["rtt"] for r in recent]) * 1e3)
-            values["map_points"] = float(recent[-1]["map_points"])
+            values["skipped"] = float(sum(self.ledger.dropped_source[r] for r in DELIBERATE))
+            recent = list(self.ledger.records.values())[-20:]
+        answered = [r for r in recent if "rtt" in r]
+        if answered:
+            values["rtt_ms"] = float(np.mean([r["rtt"] for r in answered]) * 1e3)
+            values["map_points"] = float(answered[-1]["map_points"])
+        cpu = [r["cpu_ms"] for r in recent if "cpu_send_ms" in r]
+        if cpu:
+            values["cpu_ms"] = float(np.median(cpu))
         return values
 
     # Results
     def metrics(self) -> dict[str, Any]:
         with self._lock:
-            recs = [self.ledger.records[k] for k in sorted(self.ledger.records)]
+            totals = self.ledger.log.totals.with_records(self.ledger.records.values())
             balance = self.ledger.balance()
             out: dict[str, Any] = {
                 "robot": self.opts.robot_id,
                 "source": self.source.name,
                 "policy": self.policy.name,
+                "coding": self.opts.coding,
                 "balance": balance,
                 "balanced": self.ledger.balanced(),
                 "dropped_source": dict(self.ledger.dropped_source),
                 "other": {k: v for k, v in self.ledger.counters.items() if k not in balance},
                 "drops": self.drops.snapshot(),
+                # what a live or recorded source refused (a malformed ROS message, a bad row)
+                "source_drops": _source_drops(self.source),
+                "sender": {"sent": self.sender.sent, "replaced": self.sender.replaced,
+                           "errors": self.sender.errors},
             }
-        sent = [r for r in recs if "bytes" in r]
-        acked = [r for r in recs if r.get("status") == "acked"]
-        t = [r["interarrival"] for r in acked if np.isfinite(r.get("interarrival", np.nan))]
-        out["scans"] = {
-            "sent": len(sent),
-            "acked": len(acked),
-            "mean_kB_sent": float(np.mean([r["bytes"] for r in sent]) / 1e3) if sent else None,
-            "mean_points_raw": float(np.mean([r["n_raw"] for r in sent])) if sent else None,
-            "mean_points_sent": float(np.mean([r["n_sent"] for r in sent])) if sent else None,
-            "mean_work_ms": float(np.mean([r["work_ms"] for r in sent if "work_ms" in r])) if sent else None,
-            "mean_T": float(np.mean(t)) if t else None,
-            "frac_T_le_0.11": float(np.mean(np.asarray(t) <= 0.11)) if t else None,
-            "mean_rtt_ms": float(np.mean([r["rtt"] for r in acked]) * 1e3) if acked else None,
-            "map_points": int(acked[-1]["map_points"]) if acked else 0,
-        }
+        out["scans"] = totals.scans(sum(out["dropped_source"].get(r, 0) for r in DELIBERATE))
+        out["records_retired"] = self.ledger.log.retired
+        out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
+        if hasattr(self.policy, "counts"):
+            out["policy_counts"] = dict(self.policy.counts)
         return out
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "robot_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
         with self._lock:
-            recs = [self.ledger.records[k] for k in sorted(self.ledger.records)]
-            poses = dict(self.ledger.poses)
-            gts = dict(self.ledger.gt_poses)
-        with open(out_dir / "robot_scans.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=RECORD_FIELDS, extrasaction="ignore")
-            w.writeheader()
-            for r in recs:
-                w.writerow(r)
-        np.savez(
-            out_dir / "robot_poses.npz",
-            acked_seqs=np.array(sorted(poses), np.int64),
-            acked_poses=np.array([poses[k] for k in sorted(poses)]).reshape(-1, 4, 4),
-            gt_seqs=np.array(sorted(gts), np.int64),
-            gt_poses=np.array([gts[k] for k in sorted(gts)]).reshape(-1, 4, 4),
-        )
+            self.ledger.log.write(out_dir)
+
+
+def cpu_summary(totals: ScanTotals, process: dict[str, float], produced: int) -> dict[str, Any]:
+    """The robot's CPU: per scan sent (the offload path on the loop and sender threads), over all
+    scans (skipped ones cost a decision), and the process's whole CPU time (every thread: Zenoh's,
+    the sensor's) with the sensor thread's own share (a replayed or simulated sensor is not
+    offloading work) taken out."""
+    own = process["process_s"] - process["sensor_s"]
+    return {
+        "per_scan_ms": totals.cpu.quantile(0.5),  # median over scans sent (1 % histogram bins)
+        "mean_per_scan_ms": totals.cpu.mean(),
+        "p95_per_scan_ms": totals.cpu.quantile(0.95),
+        "loop_ms": totals.cpu_loop.quantile(0.5),
+        "send_ms": totals.cpu_send.quantile(0.5),
+        "path_ms_per_produced": totals.cpu_all_ms / produced if produced else None,
+        "process_s": process["process_s"],
+        "sensor_s": process["sensor_s"],
+        "wall_s": process["wall_s"],
+        "process_ms_per_scan": 1e3 * own / produced if produced else None,
+    }
+
+
+def _source_drops(source: ScanSource) -> dict[str, int]:
+    drops = getattr(source, "drops", None)
+    return dict(drops.snapshot()) if drops is not None else {}
 
 
 def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource | None = None,
                   policy: ScalePolicy | None = None) -> ScanStreamer:
     """The scan pipeline for these settings (``source`` and ``policy`` to inject others)."""
-    source = source or open_scan_source(settings.scans, sim_seed=settings.sim_seed)
-    policy = policy or load_scale_policy(settings.scale_policy, settings.voxel, settings.voxel_range)
+    source = source or open_scan_source(settings.scans, sim_seed=settings.sim_seed,
+                                        bin_fields=settings.bin_fields,
+                                        ros2=settings.ros2.link(settings.ros2.node))
+    policy = policy or load_scale_policy(settings.scale_policy, settings.voxel, settings.voxel_range,
+                                         widen=settings.voxel_widen, max_skip=settings.max_skip,
+                                         stall_after=settings.stall_after, jitter_pace=settings.jitter_pace)
     options = StreamOptions(
         robot_id=settings.robot_id, rate_hz=settings.rate_hz or source.rate_hz, replay=settings.replay,
         max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
-        quant_fraction=settings.quant_fraction, ack_timeout=settings.ack_timeout,
-        max_in_flight=settings.max_in_flight)
+        quant_fraction=settings.quant_fraction, zstd_level=settings.zstd_level,
+        ack_timeout=settings.ack_timeout, max_in_flight=settings.max_in_flight,
+        out_dir=Path(settings.out_dir) if settings.out_dir else None)
     return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

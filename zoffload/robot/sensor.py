@@ -1,6 +1,7 @@
 """A sensor thread that replays a source (LiDAR scans or camera frames) at its rate, like a real
 driver: it never waits for the consumer. Only the newest reading is kept; one overwritten before it
-was taken is counted."""
+was taken is counted. The thread's CPU time is kept (``cpu_s``): a replayed or simulated sensor
+runs in the robot's process, and its work is not the robot's offloading work."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from zoffload.sources.base import replay_order
+from zoffload.sources.base import ReplayClock, replay_order
 
 log = logging.getLogger("zoffload.robot.sensor")
 
@@ -43,6 +44,7 @@ class SensorThread:
         self.produced = 0
         self.overwritten = 0
         self.read_errors = 0
+        self.cpu_s = 0.0  # CPU time of this thread so far (reading, simulating, pacing)
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._slot: Reading | None = None
@@ -58,17 +60,24 @@ class SensorThread:
 
     def _run(self) -> None:
         start = time.monotonic()
+        live = bool(getattr(self.source, "live", False))
+        # A spinning sensor delivers a scan every period, whoever listens; a bag's frames come as
+        # far apart as they were recorded (stretched to --rate); a live topic paces itself
+        clock = ReplayClock(start, self.period, live=live, scale=self.period * self.source.rate_hz)
         try:
             for k, index in enumerate(replay_order(len(self.source), self.mode)):
                 if self._stop.is_set() or (self.max_scans is not None and k >= self.max_scans):
                     break
-                # A spinning sensor delivers scan k at start + (k + 1) * period, whoever listens
-                due = start + (k + 1) * self.period
-                frame = self.source.read(index)
+                frame = self.source.read(index)  # a live topic's: waits for its next message
+                self.cpu_s = time.thread_time()
+                due = clock.due(getattr(frame, "stamp", None))
                 delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     break
-                reading = Reading(seq=k, frame=frame, capture_stamp=time.time())
+                now, stamp = time.time(), getattr(frame, "stamp", None)
+                # A live topic's header stamp is when the sensor completed the scan (same clock)
+                capture = stamp if live and stamp is not None and abs(stamp - now) < 5.0 else now
+                reading = Reading(seq=k, frame=frame, capture_stamp=capture)
                 with self._cond:
                     if self._slot is not None:
                         self.overwritten += 1
@@ -79,6 +88,7 @@ class SensorThread:
             self.read_errors += 1
             log.error("%s source failed: %s", self._thread.name, exc)
         finally:
+            self.cpu_s = time.thread_time()
             self.finished.set()
             with self._cond:
                 self._cond.notify_all()

@@ -31,9 +31,10 @@ from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
-from zoffload.runtime.session import open_session, undeclare
+from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, undeclare, with_defaults
 
 log = logging.getLogger("zoffload.robot")
+ROBOT_MAX_MESSAGE = 64 * 1024 * 1024
 
 
 class RobotServer:
@@ -54,7 +55,9 @@ class RobotServer:
     def startup(self) -> None:
         s = self.settings
         if self.session is None:
-            self.session = open_session(s.zenoh)
+            # The robot takes acks, detections and checkpoints: a message of more than 64 MiB is
+            # no answer of an edge (Zenoh's own default is 1 GiB)
+            self.session = open_session(with_defaults(s.zenoh, {MAX_MESSAGE_KEY: str(ROBOT_MAX_MESSAGE)}))
         self._token = self.session.liveliness().declare_token(self.keys.robot_alive(s.robot_id))
         self._status_pub = self.session.declare_publisher(
             self.keys.robot_status(s.robot_id), congestion_control=zenoh.CongestionControl.DROP)

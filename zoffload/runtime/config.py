@@ -8,12 +8,15 @@ command-line flag (``zoffload.cli.flags`` builds the daemons' flags from these m
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from zoffload.protocol.keys import DEFAULT_NAMESPACE, check_id
 from zoffload.sources.base import Replay
+
+if TYPE_CHECKING:
+    from zoffload.ros2.session import Ros2Link
 
 DetectorModel = Literal["nanodet-m", "picodet-s", "yolox-nano"]
 
@@ -40,6 +43,18 @@ class ZenohSettings(_Strict):
     )
     cfg: list[str] = Field(
         default_factory=list, description="any Zenoh config key as KEY:VALUE, VALUE in JSON5"
+    )
+    # TLS (runtime/session.py turns these into transport/link/tls keys; `zoffload certs` makes them)
+    tls_ca: str | None = Field(
+        default=None, description="CA certificate (PEM) the peer's certificate must chain to: turns on TLS",
+    )
+    tls_cert: str | None = Field(
+        default=None, description="this program's certificate (PEM, common name = its id): mutual TLS",
+    )
+    tls_key: str | None = Field(default=None, description="the private key (PEM) of tls_cert")
+    user: str | None = Field(default=None, description="user name for Zenoh's user/password authentication")
+    password_file: str | None = Field(
+        default=None, description="file holding that user's password (first line; keep it private)",
     )
 
     @field_validator("cfg")
@@ -76,6 +91,50 @@ class MapperSettings(_Strict):
         default=0.1, gt=0, description="global map: one point per voxel of this size, in m"
     )
     queue: int = Field(default=2, ge=1, description="scans waiting per robot before the oldest is dropped")
+    workers: int | None = Field(
+        default=None, ge=1, description="mapping threads serving every robot's queue; unset: one per core",
+    )
+    map_budget: int = Field(
+        default=2_000_000, ge=1,
+        description="global map points kept per robot; beyond it new voxels are counted, not stored",
+    )
+    trajectory_budget: int = Field(
+        default=100_000, ge=1,
+        description="poses kept in memory per robot; older ones go to map_dir (or are only counted)",
+    )
+
+
+class AdmissionSettings(_Strict):
+    """Which robots the edge serves: others get a refusal, never state on the edge."""
+
+    robots: list[str] = Field(
+        default_factory=list, description="the robots served (allowlist); empty: any id, up to max_robots",
+    )
+    max_robots: int = Field(default=16, ge=1, description="robots served at once")
+    idle_timeout: float = Field(
+        default=300.0, gt=0,
+        description="seconds without a scan or frame before a robot is forgotten (its map exported first)",
+    )
+    refusals_per_s: float = Field(
+        default=20.0, gt=0,
+        description="refusals answered per second, all robots together; the rest are counted",
+    )
+
+    @field_validator("robots")
+    @classmethod
+    def _ids(cls, v: list[str]) -> list[str]:
+        return [check_id(r, "robot id") for r in v]
+
+
+class LimitsSettings(_Strict):
+    """What the edge accepts in one message; checked before anything is allocated."""
+
+    # Peak edge memory for a scan of zeros at the cap (decoding, float64 copies, KISS-ICP), measured
+    # by tests/system/test_regressions.py: 500k points +65 MB, 1M +115 MB, 2M +187 MB. 500k keeps
+    # any crafted scan within +100 MB and is ~2x a 128-beam sensor's full sweep (262k points)
+    max_points: int = Field(default=500_000, ge=1, description="points in one scan")
+    max_pixels: int = Field(default=3840 * 2160, ge=1, description="pixels in one camera frame")
+    max_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description="bytes of one message")
 
 
 class DetectorSettings(_Strict):
@@ -101,8 +160,8 @@ class PerceptionSettings(_Strict):
     """The robot's camera pipeline: where each frame is detected, and the local detector."""
 
     strategy: str = Field(
-        default="dynamic",
-        description="where each frame is detected: robot, edge, ratio:R, thesis or dynamic (ours)",
+        default="dispatch",
+        description="where each frame is detected: robot, edge, ratio:R, thesis, dynamic or dispatch (ours)",
     )
     local_model: DetectorModel = Field(default="nanodet-m", description="the robot's own detector model")
     local_model_path: str | None = Field(
@@ -126,7 +185,27 @@ class PerceptionSettings(_Strict):
     )
     max_in_flight: int = Field(
         default=4, ge=0,
-        description="dynamic: its window's upper end of unanswered frames",
+        description="dispatch, dynamic: unanswered edge frames at most (dynamic adapts between 2 and this)",
+    )
+    max_age: float = Field(
+        default=0.6, gt=0,
+        description="dispatch: seconds from capture a result is worth the work; later frames are skipped",
+    )
+    local_bias: float = Field(
+        default=0.04, ge=0,
+        description="dispatch: seconds sooner the robot must finish a frame to take it (lighter model)",
+    )
+    refresh_period: float = Field(
+        default=1.0, gt=0,
+        description="dispatch: seconds without an edge frame before a local frame is also copied to the edge",
+    )
+    cpu_share: float = Field(
+        default=1.0, gt=0, le=1,
+        description="dispatch: share of the CPU quota the robot fills; its local detector is paced within it",
+    )
+    preview_period: float = Field(
+        default=0.25, ge=0,
+        description="seconds between viewer previews at most (only while a viewer subscribes); 0: none",
     )
     reply_timeout: float = Field(
         default=0.5, gt=0, description="seconds before an unanswered edge frame is lost"
@@ -154,6 +233,89 @@ class PerceptionSettings(_Strict):
         return v
 
 
+class Ros2Settings(_Strict):
+    """Joining a ROS 2 graph on rmw_zenoh (no ROS install): the ROS side's own Zenoh session."""
+
+    domain_id: int | None = Field(
+        default=None, ge=0, le=232, description="ROS domain id; unset: $ROS_DOMAIN_ID, else 0")
+    mode: Literal["client", "peer"] = Field(
+        default="client", description="ROS-side session mode (a client of the rmw_zenohd router)")
+    connect: list[str] = Field(
+        default_factory=lambda: ["tcp/localhost:7447"], description="the rmw_zenohd router to connect to")
+    listen: list[str] = Field(default_factory=list, description="ROS-side endpoints to listen on")
+    config_file: str | None = Field(
+        default=None,
+        description="Zenoh config file of the ROS side; unset: $ZENOH_SESSION_CONFIG_URI, else the above",
+    )
+    namespace: str = Field(default="/", description="the ROS namespace of zoffload's node")
+    attachment: Literal["plain", "keyed"] = Field(
+        default="plain",
+        description="attachment format: plain (Jazzy >= 0.2.4, Kilted, Rolling), keyed (Jazzy 0.2.0-0.2.3)",
+    )
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, v: str) -> str:
+        from zoffload.ros2.keys import namespace_name
+
+        return namespace_name(v)  # ValueError: not a ROS namespace
+
+    def link(self, node: str) -> Ros2Link:
+        from zoffload.ros2.session import Ros2Link
+
+        return Ros2Link(domain_id=self.domain_id, mode=self.mode, connect=tuple(self.connect),
+                        listen=tuple(self.listen), config_file=self.config_file, node=node,
+                        namespace=self.namespace, keyed_attachment=self.attachment == "keyed")
+
+
+class RobotRos2Settings(Ros2Settings):
+    """The robot's ROS 2 inputs (``--scans ros2:/TOPIC``, ``--images ros2:/TOPIC``)."""
+
+    node: str = Field(default="zoffload_robot", description="the node name the robot appears as")
+
+    @field_validator("node")
+    @classmethod
+    def _node(cls, v: str) -> str:
+        from zoffload.ros2.keys import node_name
+
+        return node_name(v)
+
+
+class EdgeRos2Settings(Ros2Settings):
+    """The edge's ROS 2 outputs, per robot: odometry and /tf from each ack, the map (latched),
+    detections. ``{robot}`` in a topic or frame is the robot's id."""
+
+    enabled: bool = Field(default=False, description="publish to ROS 2")
+    share_session: bool = Field(
+        default=False, description="publish on the edge's own Zenoh session instead of a ROS-side one")
+    node: str = Field(default="zoffload_edge", description="the node name the edge appears as")
+    odom_topic: str = Field(default="/{robot}/odom", description="nav_msgs/Odometry topic")
+    tf: bool = Field(default=True, description="broadcast world frame -> sensor frame on /tf")
+    map_topic: str = Field(default="/{robot}/map", description="sensor_msgs/PointCloud2 map topic (latched)")
+    detections_topic: str = Field(
+        default="/{robot}/detections", description="vision_msgs/Detection2DArray topic")
+    world_frame: str = Field(default="{robot}/odom", description="frame of poses and the map")
+    sensor_frame: str = Field(default="{robot}/lidar", description="the LiDAR's frame (the odometry's child)")
+    camera_frame: str = Field(default="{robot}/camera", description="frame of the detections")
+    map_period: float = Field(default=2.0, gt=0, description="seconds between map publications")
+    map_max_points: int = Field(default=2_000_000, ge=1, description="points of a published map at most")
+
+    @field_validator("odom_topic", "map_topic", "detections_topic")
+    @classmethod
+    def _topic(cls, v: str) -> str:
+        from zoffload.ros2.keys import topic_name
+
+        topic_name(v.replace("{robot}", "robot"))  # ValueError names what ROS would refuse
+        return v
+
+    @field_validator("node")
+    @classmethod
+    def _node(cls, v: str) -> str:
+        from zoffload.ros2.keys import node_name
+
+        return node_name(v)
+
+
 class RobotSettings(_Strict):
     """The robot daemon: a scan source, its voxel sizing, the link to the edge and the camera."""
 
@@ -161,11 +323,13 @@ class RobotSettings(_Strict):
     namespace: str = Field(default=DEFAULT_NAMESPACE, description="key namespace, the same on robot and edge")
     scans: str = Field(
         default="sim",
-        description="scan source: sim, a folder of .bin/.pcd/.ply scans, or none",
+        description="scans: sim[:speed=M/S,sweep], a .bin/.pcd/.ply folder, ros2:/TOPIC, "
+        "bag:PATH[:/TOPIC], none",
     )
     images: str | None = Field(
         default=None,
-        description="camera: coco-clips[:FOLDER], an image folder or a video file; unset: no camera",
+        description="camera: coco-clips[:FOLDER], image folder, video, ros2:/TOPIC, "
+        "bag:PATH[:/TOPIC]; unset: none",
     )
     replay: Replay = Field(
         default="once", description="how a recorded source is replayed (pingpong: forward then back)"
@@ -175,6 +339,13 @@ class RobotSettings(_Strict):
     )
     max_scans: int | None = Field(default=None, ge=1, description="stop after this many scans")
     sim_seed: int = Field(default=0, description="simulator scene seed")
+    bin_fields: str | None = Field(
+        default=None,
+        description="columns of .bin scans (x,y,z,i,t or x,y,z,i,t:u4:ns); "
+        "unset: KITTI, .pcd.bin nuScenes",
+    )
+    ros2: RobotRos2Settings = Field(
+        default_factory=RobotRos2Settings, description="ROS 2 inputs (scans/images ros2:/TOPIC)")
     voxel: float = Field(
         default=0.05, ge=0,
         description="voxel size in m: the fixed policy's, the rate policy's start, the DQN fallback; 0 = raw",
@@ -187,12 +358,30 @@ class RobotSettings(_Strict):
     voxel_range: tuple[float, float] = Field(
         default=(0.01, 0.07), description="the scale policy's voxel range in m (0.02 0.5 for an HDL-64)"
     )
-    scan_coding: Literal["f32", "q16z"] = Field(
-        default="q16z",
-        description="scan payload: f32 floats, or q16z (quantised, Zstandard; decoded on the edge)",
+    scan_coding: Literal["f32", "q16z", "q16d"] = Field(
+        default="q16d",
+        description="scan payload: f32 floats, q16z or q16d (quantised; q16d compressed when needed)",
     )
     quant_fraction: float = Field(
-        default=0.1, gt=0, le=0.5, description="q16z step as a fraction of the voxel size (raw scans: 5 mm)"
+        default=0.1, gt=0, le=0.5, description="q16 step as a fraction of the voxel size (raw scans: 5 mm)"
+    )
+    zstd_level: int = Field(default=1, ge=-7, le=22, description="q16d's Zstandard level")
+    # The rate policy when nothing in voxel_range fits the link (README "Ours", unseen links)
+    voxel_widen: float = Field(
+        default=2.0, ge=1.0,
+        description="rate policy: widen voxel_range up to this times its end when nothing fits; 1 = never",
+    )
+    max_skip: int = Field(
+        default=2, ge=0,
+        description="rate policy: scans it may skip in a row when even the widened range does not fit",
+    )
+    stall_after: float = Field(
+        default=0.5, ge=0,
+        description="rate policy: seconds without an ack (scans in flight) before it skips; 0 = never",
+    )
+    jitter_pace: int = Field(
+        default=1, ge=1,
+        description="rate policy: periods per scan it may take to absorb the link's jitter; 1 = never",
     )
     ack_timeout: float = Field(default=1.0, gt=0, description="seconds before an unanswered scan is lost")
     # Like a TCP window, the limit keeps the link carrying whole scans: the excess is dropped at
@@ -233,6 +422,9 @@ class EdgeSettings(_Strict):
     namespace: str = Field(default=DEFAULT_NAMESPACE, description="key namespace, the same on robot and edge")
     mapper: MapperSettings = Field(default_factory=MapperSettings, description="KISS-ICP mapping")
     detector: DetectorSettings = Field(default_factory=DetectorSettings, description="the object detector")
+    admission: AdmissionSettings = Field(default_factory=AdmissionSettings, description="robots served")
+    limits: LimitsSettings = Field(default_factory=LimitsSettings, description="message size caps")
+    ros2: EdgeRos2Settings = Field(default_factory=EdgeRos2Settings, description="ROS 2 outputs")
     map_dir: str | None = Field(
         default=None, description="export every robot's map and trajectory here on shutdown"
     )

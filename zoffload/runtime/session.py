@@ -1,11 +1,13 @@
-"""Opening Zenoh sessions from the session settings every program shares, and loopback helpers
-for local runs and tests."""
+"""Opening Zenoh sessions from the session settings every program shares (TLS and user/password
+included), and loopback helpers for local runs and tests."""
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import socket
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -25,17 +27,71 @@ def loopback_endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
+def security_entries(z: ZenohSettings) -> dict[str, Any]:
+    """The Zenoh config keys of the TLS and user/password settings.
+
+    ``tls_ca`` alone: TLS, the peer's certificate checked against that CA. With ``tls_cert`` and
+    ``tls_key``: mutual TLS, this program presenting its certificate (its identity for the router's
+    access control is the certificate's common name). Zenoh sends no client certificate unless
+    ``enable_mtls`` is also set on the client, so it is set on every side; the certificate serves
+    for both the connecting and the listening side of the session."""
+    entries: dict[str, Any] = {}
+    if z.tls_cert or z.tls_key or z.tls_ca:
+        if not z.tls_ca:
+            raise ZenohSessionError("tls_cert and tls_key need tls_ca (the CA the other side's certificate "
+                                    "must chain to)")
+        if bool(z.tls_cert) != bool(z.tls_key):
+            raise ZenohSessionError("tls_cert and tls_key go together")
+        for path in (z.tls_ca, z.tls_cert, z.tls_key):
+            if path and not os.access(path, os.R_OK):
+                raise ZenohSessionError(f"cannot read the TLS file {path}")
+        tls = "transport/link/tls/"
+        entries[tls + "root_ca_certificate"] = z.tls_ca
+        if z.tls_cert:
+            entries[tls + "enable_mtls"] = True
+            for side in ("connect", "listen"):
+                entries[f"{tls}{side}_certificate"] = z.tls_cert
+                entries[f"{tls}{side}_private_key"] = z.tls_key
+        plain = [e for e in [*z.connect, *z.listen] if not e.startswith(("tls/", "quic/"))]
+        if plain:
+            logging.getLogger("zoffload.session").warning(
+                "TLS is configured but %s %s not encrypted: use tls/HOST:PORT", ", ".join(plain),
+                "is" if len(plain) == 1 else "are")
+    if z.user:
+        if not z.password_file:
+            raise ZenohSessionError("user needs password_file (the password's first line)")
+        try:
+            password = Path(z.password_file).read_text().splitlines()[0].strip()
+        except (OSError, IndexError) as exc:
+            raise ZenohSessionError(f"cannot read a password from {z.password_file}: {exc}") from exc
+        entries["transport/auth/usrpwd/user"] = z.user
+        entries["transport/auth/usrpwd/password"] = password
+    return entries
+
+
 def zenoh_config(z: ZenohSettings) -> zenoh.Config:
-    """Build a ``zenoh.Config`` from the session settings (file first, then flags, then --cfg)."""
+    """Build a ``zenoh.Config`` from the session settings: the config file first, then the session
+    settings, then ``--cfg``. With a config file, the settings that have a default (mode, scouting,
+    shared memory) override it only when they were given."""
+
+    def given(name: str) -> bool:
+        return not z.config_file or name in z.model_fields_set
+
+    entries = security_entries(z)
     try:
         conf = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(z.mode))
+        if given("mode"):
+            conf.insert_json5("mode", json.dumps(z.mode))
         if z.connect:
             conf.insert_json5("connect/endpoints", json.dumps(z.connect))
         if z.listen:
             conf.insert_json5("listen/endpoints", json.dumps(z.listen))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
-        conf.insert_json5("transport/shared_memory/enabled", json.dumps(z.shared_memory))
+        if given("multicast_scouting"):
+            conf.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
+        if given("shared_memory"):
+            conf.insert_json5("transport/shared_memory/enabled", json.dumps(z.shared_memory))
+        for key, value in entries.items():
+            conf.insert_json5(key, json.dumps(value))
         for item in z.cfg:
             key, value = item.split(":", 1)
             conf.insert_json5(key, value)
@@ -73,3 +129,16 @@ def undeclare(*entities: Any) -> None:
             entity.undeclare()
         except Exception as exc:  # the session is closing
             logging.getLogger("zoffload.session").debug("%s not undeclared: %s", type(entity).__name__, exc)
+
+
+MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
+
+
+def with_defaults(z: ZenohSettings, defaults: dict[str, str]) -> ZenohSettings:
+    """``z`` with these ``KEY: JSON5 value`` Zenoh settings added, unless the user's ``--cfg`` or
+    config file already sets them."""
+    if z.config_file:
+        return z
+    given = {item.split(":", 1)[0] for item in z.cfg}
+    extra = [f"{k}:{v}" for k, v in defaults.items() if k not in given]
+    return z.model_copy(update={"cfg": [*extra, *z.cfg]}) if extra else z

@@ -1,4 +1,5 @@
-"""Scan sources: KITTI .bin folders, PCD/PLY folders, and the built-in simulator."""
+"""Scan sources: folders of .bin (any declared column layout), PCD and PLY scans, ROS 2 topics and
+bags, and the built-in simulator."""
 
 from zoffload.sources.base import ScanFrame, ScanSource, ScanSourceError, open_scan_source
 

@@ -15,10 +15,15 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
 
 from zoffload.sources.base import ScanSourceError
+
+if TYPE_CHECKING:
+    from zoffload.ros2.session import Ros2Link
+    from zoffload.sources.ros2_images import BagImageSource, Ros2ImageSource
 
 log = logging.getLogger("zoffload.sources.images")
 
@@ -35,6 +40,7 @@ class ImageFrame:
     index: int
     image: np.ndarray  # (H, W, 3) uint8 BGR
     gt_boxes: np.ndarray | None = None  # (n, 4) person boxes x1, y1, x2, y2 in this frame's pixels
+    stamp: float | None = None  # capture time on the camera's clock (ROS topics and bags), epoch s
 
 
 def _imread(path: Path) -> np.ndarray:
@@ -124,6 +130,21 @@ def coco_person_boxes(root: Path) -> list[tuple[Path, int, int, np.ndarray]]:
     return out
 
 
+# An honest evaluation tunes on one half of the annotated images and reports on the other. The
+# rule, fixed before any tuning: the images sorted by file name (COCO names are zero-padded ids),
+# positions 0, 2, 4, ... are "tune", positions 1, 3, 5, ... are "holdout".
+COCO_HALVES = ("tune", "holdout")
+
+
+def coco_half(images: list[tuple[Path, int, int, np.ndarray]],
+              half: str) -> list[tuple[Path, int, int, np.ndarray]]:
+    """The ``tune`` or ``holdout`` half of ``coco_person_boxes`` output (see COCO_HALVES)."""
+    if half not in COCO_HALVES:
+        raise ImageSourceError(f"unknown image half {half!r} ({', '.join(COCO_HALVES)})")
+    ordered = sorted(images, key=lambda image: image[0].name)
+    return ordered[COCO_HALVES.index(half)::2]
+
+
 class CocoClipSource:
     """Pan/zoom clips over annotated COCO images (COCO-format json, category 1 = person).
 
@@ -131,18 +152,20 @@ class CocoClipSource:
     aspect ratio; it starts at ``zoom[0]`` of the largest such crop on one side and ends at
     ``zoom[1]`` on the other (alternating direction per image), so boxes drift and grow over the
     clip. A box is kept in a frame while at least ``min_visible`` of its area is inside the crop.
+    ``half`` keeps only the tuning or the held-out half of the images (``coco_half``).
     """
 
     def __init__(self, root: Path, size: tuple[int, int] = (848, 480), fps: float = 25.0,
                  frames_per_image: int = 50, zoom: tuple[float, float] = (1.0, 0.85),
-                 min_visible: float = 0.5) -> None:
-        self.stills = [_Still(*image) for image in coco_person_boxes(root)]
+                 min_visible: float = 0.5, half: str | None = None) -> None:
+        images = coco_person_boxes(root)
+        self.stills = [_Still(*image) for image in (coco_half(images, half) if half else images)]
         self.size = size
         self.rate_hz = fps
         self.frames_per_image = frames_per_image
         self.zoom = zoom
         self.min_visible = min_visible
-        self.name = f"coco-clips:{root}"
+        self.name = f"coco-clips:{root}" + (f"@{half}" if half else "")
         self._cache: tuple[int, np.ndarray] | None = None
 
     def __len__(self) -> int:
@@ -193,19 +216,27 @@ class CocoClipSource:
         return ImageFrame(index, img, self.boxes(index))
 
 
-ImageSource = ImageFolderSource | VideoFileSource | CocoClipSource
+ImageSource: TypeAlias = (
+    "ImageFolderSource | VideoFileSource | CocoClipSource | Ros2ImageSource | BagImageSource")
 
 
-def open_image_source(spec: str, rate_hz: float | None = None) -> ImageSource:
-    """``coco-clips`` (the shared COCO person images), ``coco-clips:FOLDER``, an image folder, or a
-    video file."""
-    if spec == "coco-clips" or spec.startswith("coco-clips:"):
+def open_image_source(spec: str, rate_hz: float | None = None, ros2: Ros2Link | None = None) -> ImageSource:
+    """``coco-clips`` (the shared COCO person images), ``coco-clips:FOLDER``, either with ``@tune`` or
+    ``@holdout`` for one half of the images (``coco_half``), an image folder, or a video file."""
+    if spec.startswith(("coco-clips:", "coco-clips@")) or spec == "coco-clips":
+        half = None
+        if "@" in spec and spec.rsplit("@", 1)[1] in COCO_HALVES:
+            spec, half = spec.rsplit("@", 1)
         default = (Path(os.environ["ZOFFLOAD_DATA"]) / "coco-person-dev" if os.environ.get("ZOFFLOAD_DATA")
                    else SHARED_COCO)
         root = Path(spec.split(":", 1)[1]).expanduser() if ":" in spec else default
         if not root.is_dir():
             raise ImageSourceError(f"COCO clip folder {root} does not exist (give coco-clips:FOLDER)")
-        return CocoClipSource(root, fps=rate_hz or 25.0)
+        return CocoClipSource(root, fps=rate_hz or 25.0, half=half)
+    if spec.startswith(("ros2:", "bag:")):  # a ROS 2 topic or bag: sources/ros2_images.py
+        from zoffload.sources.ros2_images import open_ros_image_source
+
+        return open_ros_image_source(spec, rate_hz, ros2)
     path = Path(spec).expanduser()
     if not path.exists():
         raise ImageSourceError(f"image source {path} does not exist")

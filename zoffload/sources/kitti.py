@@ -1,4 +1,6 @@
-"""KITTI / KITTI-360 Velodyne folders: float32 rows ``x, y, z, reflectance`` per ``.bin`` file."""
+"""Folders of headerless ``.bin`` scans: KITTI / KITTI-360 (float32 ``x, y, z, reflectance``),
+nuScenes ``.pcd.bin`` (``x, y, z, intensity, ring``), or any declared column layout, with a
+per-point time column where the layout has one (sources/layouts.py)."""
 
 from __future__ import annotations
 
@@ -7,40 +9,29 @@ from pathlib import Path
 import numpy as np
 
 from zoffload.sources.base import ScanFrame, ScanSourceError
+from zoffload.sources.layouts import KITTI, BinLayout, check_size, layout_for, read_bin
 
-_ROW = 16  # bytes per point: 4 x float32
 
-
-def read_kitti_bin(path: Path) -> np.ndarray:
+def read_kitti_bin(path: Path, layout: BinLayout = KITTI) -> np.ndarray:
     """The (N, 3) float32 points of one scan; ``ScanSourceError`` if empty or truncated."""
-    size = path.stat().st_size if path.exists() else -1
-    if size < 0:
-        raise ScanSourceError(f"{path}: no such scan file")
-    if size == 0:
-        raise ScanSourceError(f"{path}: empty scan file")
-    if size % _ROW:
-        raise ScanSourceError(
-            f"{path}: {size} bytes is not a whole number of 16-byte points (truncated file?)"
-        )
-    data = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    return np.ascontiguousarray(data[:, :3])
+    return read_bin(path, layout)[0]
 
 
 class KittiBinSource:
-    """A folder of KITTI ``.bin`` scans, played in file-name order at ``rate_hz``."""
+    """A folder of ``.bin`` scans, played in file-name order at ``rate_hz``. ``layout`` None: each
+    file's by its name (``.pcd.bin`` nuScenes, else KITTI)."""
 
-    def __init__(self, folder: Path, rate_hz: float = 10.0, max_range: float = 100.0) -> None:
+    def __init__(self, folder: Path, rate_hz: float = 10.0, max_range: float = 100.0,
+                 layout: BinLayout | None = None) -> None:
         self.files = sorted(Path(folder).glob("*.bin"))
         if not self.files:
             raise ScanSourceError(f"no .bin scans in {folder}")
+        self.layouts = [layout_for(f, layout) for f in self.files]
         # Check every file's size up front: a truncated file is an error at start, not mid-run.
-        for f in self.files:
-            size = f.stat().st_size
-            if size == 0 or size % _ROW:
-                raise ScanSourceError(
-                    f"{f}: {size} bytes is not a whole number of 16-byte points (empty or truncated)"
-                )
-        self.name = f"kitti:{folder}"
+        for f, lay in zip(self.files, self.layouts, strict=True):
+            check_size(f, lay)
+        kinds = sorted({lay.name for lay in self.layouts})
+        self.name = f"{'+'.join(kinds)}:{folder}"  # kitti:FOLDER as before for KITTI
         self.rate_hz = rate_hz
         self.max_range = max_range
 
@@ -48,4 +39,5 @@ class KittiBinSource:
         return len(self.files)
 
     def read(self, index: int) -> ScanFrame:
-        return ScanFrame(index=index, points=read_kitti_bin(self.files[index]))
+        points, times = read_bin(self.files[index], self.layouts[index])
+        return ScanFrame(index=index, points=points, times=times)

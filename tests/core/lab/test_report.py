@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from zoffload.lab.eval.report import SEED_TABLE_I, table_markdown
@@ -31,3 +33,28 @@ def test_table_has_our_rows_the_papers_rows_and_map_ratio_to_local() -> None:
     assert "0.250" in lines[3]
     assert len(lines) == 4 + len(SEED_TABLE_I)
     assert "529" not in md and "528" in md and "92,644" in md and "-28 %" in md  # the paper's own
+
+
+def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) -> None:
+    from zoffload.lab.eval.report import aggregate, expand_runs
+
+    runs = []
+    for i, (received, ate, cpu) in enumerate(((90, 0.25, 1.0), (94, 0.35, 3.0)), start=1):
+        folder = tmp_path / "rate" / f"run{i}"
+        folder.mkdir(parents=True)
+        (folder / "results.json").write_text("{}")
+        r = row("rate", 100_000, received)
+        r.update(folder=folder, trajectory_error={"ate_rmse": ate}, robot_cpu_ms=cpu, on_time_slot=0.9,
+                 skipped_share=0.1)
+        runs.append(r)
+    assert expand_runs([tmp_path / "rate"]) == [tmp_path / "rate" / "run1", tmp_path / "rate" / "run2"]
+    single = dict(row("local", 200_000, 100), folder=tmp_path / "local")
+    rows = aggregate([single, *runs])
+    assert [r["n"] for r in rows] == [1, 2]
+    agg = rows[1]
+    assert agg["scans_received"] == 92 and agg["sd"]["scans_received"] == pytest.approx(2.828, abs=1e-3)
+    md = table_markdown(rows)
+    line = md.splitlines()[3]
+    assert "rate (2 runs)" in line and "92 ± 3 / 100" in line and "0.300 ± 0.071" in line
+    assert "2.00 ± 1.41" in line and "10 ± 0 %" in line and "90 ± 0 %" in line and "-50 %" in line
+    assert "| 80 ± 0 % |" in line  # T <= 0.11 s

@@ -52,3 +52,42 @@ def test_lost_scans_do_not_derail_the_mapper() -> None:
     seqs, poses = m.trajectory()
     err = trajectory_error(seqs, poses, np.array(kept), np.array([gt[i] for i in kept]))
     assert err is not None and err.ate_rmse < 0.5, err
+
+
+def test_deskew_times_are_kiss_icp_safe() -> None:
+    from zoffload.mapping.mapper import deskew_times
+
+    np.testing.assert_allclose(deskew_times(np.array([5.0, 5.05, 5.1]), 3), [0.0, 0.5, 1.0])
+    # KISS-ICP 1.3 aborts the process on all-equal times: none is no deskew instead
+    assert deskew_times(np.zeros(3), 3).size == 0 and deskew_times(None, 3).size == 0
+    with pytest.raises(ValueError, match="2 point times for 3 points"):
+        deskew_times(np.zeros(2), 3)
+    with pytest.raises(ValueError, match="non-finite"):
+        deskew_times(np.array([0.0, np.nan, 1.0]), 3)
+    m = RobotMapper(voxel_size=0.4, max_range=40.0, deskew=True)
+    f = SimulatedSource().read(0)
+    m.register(0, f.points, np.full(len(f.points), 7.0))  # equal times: registered, not aborted
+    m.register(1, f.points, None)
+    assert len(m.trajectory()[0]) == 2
+
+
+def test_deskew_undoes_the_sweep_of_a_fast_turning_robot() -> None:
+    """4 m/s through the warehouse's corners, each column fired at its own time (sim ``sweep``):
+    without deskew the skewed scans cost accuracy, with the points' times it comes back to the
+    level of scans cast without motion (benchmarks/bench_deskew.py measures it at length)."""
+    swept, still = SimulatedSource(speed=4.0, sweep=True), SimulatedSource(speed=4.0)
+    n = 50
+    frames = [swept.read(i) for i in range(n)]
+    gt = np.array([f.gt_pose for f in frames])
+    ate = {}
+    for name, deskew, source in (("skewed", False, frames), ("deskewed", True, frames),
+                                 ("still", False, [still.read(i) for i in range(n)])):
+        m = RobotMapper(voxel_size=0.4, max_range=swept.max_range, deskew=deskew)
+        for i, f in enumerate(source):
+            m.register(i, f.points, f.times)
+        seqs, poses = m.trajectory()
+        err = trajectory_error(seqs, poses, np.arange(n), gt)
+        assert err is not None
+        ate[name] = err.ate_rmse
+    assert ate["deskewed"] < 0.85 * ate["skewed"], ate
+    assert ate["deskewed"] < 1.2 * ate["still"] + 0.02, ate

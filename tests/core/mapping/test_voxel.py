@@ -108,3 +108,48 @@ def test_voxel_set_transforms_by_pose() -> None:
     np.testing.assert_allclose(a.points(), b.points(), atol=1e-9)
     with pytest.raises(ValueError, match="4x4"):
         a.add(pts, np.eye(3))
+
+
+def test_voxel_set_budget_keeps_the_first_voxels_and_counts_the_rest() -> None:
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-20, 20, size=(20_000, 3))
+    vs = VoxelSet(0.5, capacity=8, max_points=1000)
+    assert vs.add(pts[:600]) == len(vs) <= 600 and vs.overflow == 0
+    vs.add(pts[600:])
+    assert len(vs) == 1000 and vs.full
+    distinct = len(voxel_downsample(pts, 0.5))
+    assert vs.overflow >= distinct - 1000  # every point in a voxel it had no room for
+    kept = vs.points()
+    before = vs.overflow
+    assert vs.add(kept) == 0 and vs.overflow == before  # known voxels cost nothing
+    # The first voxels seen are the ones kept, in order
+    ref = VoxelSet(0.5)
+    ref.add(pts)
+    np.testing.assert_allclose(kept, ref.points()[:1000])
+    assert vs._store.shape[0] <= 1000  # memory stops at the budget
+    with pytest.raises(ValueError, match="max_points"):
+        VoxelSet(0.5, max_points=0)
+
+
+def test_voxel_set_salt_scatters_points_crafted_against_the_plain_hash() -> None:
+    import time
+
+    from benchmarks.bench_collisions import crafted_points, insert_time, random_points
+
+    VoxelSet(0.1).add(np.zeros((4, 3)))  # compiled
+    crafted, rand = crafted_points(20_000, 0.1), random_points(20_000, 0.1)
+    assert VoxelSet(0.1)._salt != VoxelSet(0.1)._salt  # one salt per set
+    # Same points out whatever the salt: the salt moves slots, not what is stored
+    a, b = VoxelSet(0.1), VoxelSet(0.1)
+    b._salt = np.int64(0)
+    a.add(crafted[:3000])
+    b.add(crafted[:3000])
+    np.testing.assert_array_equal(a.points(), b.points())
+    # Unsalted, the crafted points share one probe chain (quadratic); salted, they cost about what
+    # random points cost. Bounds are loose: the machine is shared.
+    t0 = time.perf_counter()
+    unsalted = insert_time(crafted, 0.1, salted=False)
+    salted = min(insert_time(crafted, 0.1, salted=True) for _ in range(3))
+    random_t = min(insert_time(rand, 0.1, salted=True) for _ in range(3))
+    assert unsalted > 10 * salted, (unsalted, salted, time.perf_counter() - t0)
+    assert salted < 10 * random_t + 0.05, (salted, random_t)

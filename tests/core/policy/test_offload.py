@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
-from zoffload.policy.offload import EDGE, HOLD, LOCAL, OffloadState, make_strategy
+from zoffload.policy.dispatch import Dispatcher
+from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, SKIP, EdgeReply, OffloadState, make_strategy
 
 
-def _st(**kw: float) -> OffloadState:
-    base = {"now": 0.0, "edge_available": True}
+def _st(**kw: object) -> OffloadState:
+    base: dict[str, object] = {"now": 0.0, "edge_available": True}
     base.update(kw)
     return OffloadState(**base)  # type: ignore[arg-type]
 
@@ -83,3 +86,154 @@ def test_our_window_halves_on_losses_and_grows_back() -> None:
     for _ in range(8):
         ours.on_edge_result(0.1)
     assert ours.flight_window == 4  # type: ignore[attr-defined]
+
+
+# The work-conserving dispatcher (policy/dispatch.py)
+def _reply(sent: float, result: float, service: float = 0.04, rate: float = float("nan")) -> EdgeReply:
+    return EdgeReply(sent=sent, result=result, bytes=1e6, service=service, delivery_rate=rate)
+
+
+def _measured(local: float = 0.1, edge: float = 0.06, **kw: float) -> Dispatcher:
+    """A dispatcher that has seen results of each side (local service, edge send-to-answer); the
+    first local one, at start-up, is not taken as a measure."""
+    d = Dispatcher(**kw)  # type: ignore[arg-type]
+    d.on_local_result(1.0, service=1.0, cpu=local)  # the robot was starting: ignored
+    d.on_local_result(local, service=local, cpu=local)
+    d.on_edge_result(edge, _reply(0.0, edge))
+    return d
+
+
+def test_dispatch_sends_each_frame_to_the_side_that_finishes_it_first() -> None:
+    d = _measured(local_bias=0.0)
+    assert d.decide(_st(now=1.0, capture=1.0)) == EDGE  # 60 ms against 100 ms
+    # two frames already on their way: a third would queue behind them, local is sooner
+    busy = {"edge_sends": ((0.99, 1e6), (0.995, 1e6)), "in_flight": 2}
+    assert d.decide(_st(now=1.0, capture=1.0, **busy)) == LOCAL
+    # three keep the edge busy for a base latency (60 ms at 40 ms each) with one waiting: no fourth;
+    # and local is busy, with 20 ms of its 100 done: nothing starts this frame in time
+    full = {"edge_sends": ((0.98, 1e6), (0.99, 1e6), (0.995, 1e6)), "in_flight": 3}
+    assert d.depth(1.0) == 3
+    assert d.decide(_st(now=1.0, capture=1.0, local_busy=True, local_busy_for=0.02, **full)) == SKIP
+    # the local bias (its lighter model) tips a close call towards the edge
+    close = _measured(local=0.05, edge=0.06, local_bias=0.04)
+    assert close.decide(_st(now=1.0, capture=1.0)) == EDGE
+
+
+def test_dispatch_skips_what_no_side_finishes_while_fresh() -> None:
+    d = _measured(local=0.5, edge=0.6, max_age=0.3)
+    assert d.decide(_st(now=1.0, capture=1.0)) == SKIP
+    assert d.estimates[0] == pytest.approx(1.5) and d.estimates[1] == pytest.approx(1.6)
+    # a frame that already waited at the camera has less time left
+    d = _measured(local=0.2, edge=0.25, max_age=0.3)
+    assert d.decide(_st(now=1.0, capture=1.0)) != SKIP
+    assert d.decide(_st(now=1.15, capture=1.0)) == SKIP
+
+
+def test_dispatch_learns_the_delivered_rate_and_keeps_the_link_busy_not_queued() -> None:
+    """A capped link: 1 MB frames at 16 MB/s take 62.5 ms each, more than the camera's 40 ms. A fixed
+    ratio queues frames in the link's buffers; the dispatcher keeps as many in flight as keep the
+    link busy for a base latency, plus one: the link is used fully and no frame waits long."""
+    d = _measured(local=2.0, edge=0.11, max_age=1.0, local_bias=0.0)  # local: too slow to matter
+    sends: list[tuple[float, float]] = []  # (sent, answered) of the frames on their way
+    rtts, last_answer, sides = [], 0.0, []
+    for k in range(40):
+        now = 1.0 + 0.04 * k
+        for sent, answered in [x for x in sends if x[1] <= now]:  # the link's answers meanwhile
+            sends.remove((sent, answered))
+            d.on_edge_result(answered - sent, _reply(sent, answered, rate=1e6 / 0.0625))
+            rtts.append(answered - sent)
+        side = d.decide(_st(now=now, capture=now, edge_sends=tuple((s, 1e6) for s, _ in sends),
+                            in_flight=len(sends)))
+        sides.append(side)
+        if side == EDGE:  # the pipeline: 110 ms alone, one frame per 62.5 ms at the bottleneck
+            last_answer = max(now + 0.11, last_answer + 0.0625)
+            sends.append((now, last_answer))
+    assert d.interval(1e6, now) == pytest.approx(0.0625)
+    assert d.depth(now) == 3  # 110 ms / 62.5 ms, rounded up, plus one waiting
+    assert sides.count(EDGE) >= 24  # the link's 16 frames a second (1.6 s) are used ...
+    assert max(rtts) <= 0.11 + 2 * 0.0625 + 1e-9  # ... and none waits more than about a frame for it
+    assert set(sides) == {EDGE, SKIP}
+
+
+def test_frames_that_never_return_keep_the_dispatcher_local_the_thesis_rule_does_not() -> None:
+    """The thesis' failure case: 3 edge frames come back fast, 7 never do."""
+    thesis, ours = make_strategy("thesis"), make_strategy("dispatch")
+    for s in (thesis, ours):
+        s.on_local_result(0.15, service=0.15)
+        s.on_local_result(0.15, service=0.15)
+        for k in range(3):
+            s.on_edge_result(0.08, _reply(k, k + 0.08))
+        for _ in range(7):
+            s.on_edge_timeout(0.5)
+    assert thesis.decide(_st()) == EDGE
+    assert ours.decide(_st(now=10.0, capture=10.0)) in (LOCAL, BOTH)  # blocked until it answers
+    # one more answer unblocks it, but the edge loses most frames: local still finishes more
+    ours.on_edge_result(0.08, _reply(10.0, 10.08))
+    assert ours.decide(_st(now=11.0, capture=11.0)) in (LOCAL, BOTH)
+    # a run of prompt answers restores trust
+    for k in range(15):
+        ours.on_edge_result(0.08, _reply(12.0 + k, 12.08 + k))
+    assert ours.decide(_st(now=30.0, capture=30.0)) == EDGE
+
+
+def test_dispatch_copies_a_local_frame_to_keep_the_edge_estimate_fresh() -> None:
+    d = _measured(local=0.02, edge=0.2, refresh_period=1.0)
+    sides = [d.decide(_st(now=5.0 + 0.04 * k, capture=5.0 + 0.04 * k)) for k in range(50)]  # 2 s
+    # every frame is detected locally; once a second one is also copied to the edge
+    assert set(sides) == {LOCAL, BOTH} and sides.count(BOTH) == 2
+    assert d.offloaded == 0  # a copy is no offload
+    # no copy while frames are on their way, nor without an edge
+    assert d.decide(_st(now=9.0, capture=9.0, edge_sends=((8.9, 1e6),), in_flight=1)) == LOCAL
+    assert d.decide(_st(now=12.0, capture=12.0, edge_available=False)) == LOCAL
+
+
+def test_dispatch_paces_the_local_detector_within_the_cpu_quota() -> None:
+    d = _measured(local=0.02, edge=0.2)
+    d.on_local_result(0.02, service=0.02, cpu=0.02)
+    # the rest of the process uses 0.2 of a 0.25 quota: 0.05 cores are left, so a 20 ms detection
+    # may start every 0.4 s
+    for k in range(11):
+        t = 1.0 + 0.1 * k
+        d.decide(_st(now=t, capture=t, cpu_time=0.2 * t, local_cpu_time=0.0, cpu_quota=0.25,
+                     local_last_start=1.5))
+    assert d.local_ready_at == pytest.approx(1.5 + 0.02 / 0.05, rel=0.05)
+    # no quota in force: never held back
+    d.decide(_st(now=3.0, capture=3.0, cpu_time=0.6, local_cpu_time=0.0, local_last_start=2.9))
+    assert d.local_ready_at == -math.inf
+
+
+def test_a_quarter_core_robot_detects_only_when_its_stall_does_not_starve_the_edge() -> None:
+    """Under a CPU quota a local detection of 20 ms CPU takes 100 ms: the whole robot process,
+    frame sender included, waits 80 ms with it. That is fine while the link still has over 80 ms
+    of frames queued, not when the edge path would run dry."""
+    d = make_strategy("dispatch", local_bias=0.0)
+    assert isinstance(d, Dispatcher)
+    for _ in range(3):  # (the first, at start-up, is no measure)
+        d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.stall(0.0) == pytest.approx(0.08)
+    d.on_edge_result(0.11, _reply(0.1, 0.21))
+    d.on_edge_result(0.11, _reply(0.3, 0.41, rate=1e6 / 0.06))  # a link at 60 ms a frame, 110 ms alone
+    assert d.r0(0.41) == pytest.approx(0.11) and d.depth(0.41) == 3
+    # two frames just sent: the link has 110 ms of work ahead, the stall fits: local
+    t = 0.5
+    queued = {"edge_sends": ((t - 0.01, 1e6), (t - 0.005, 1e6)), "in_flight": 2}
+    assert d.decide(_st(now=t, capture=t, **queued)) == LOCAL
+    # one frame on its way, due in 60 ms: a detection now would idle the link, the edge takes it
+    d.on_edge_result(0.15, _reply(0.4, 0.55, rate=1e6 / 0.06))
+    t = 0.6
+    assert d.decide(_st(now=t, capture=t, edge_sends=((t - 0.05, 1e6),), in_flight=1)) == EDGE
+    # the detector idle for a few seconds, its slow measurement has faded: it is used again
+    assert d.local_time(t + 5.0) == pytest.approx(0.02, abs=0.005)
+    assert d.decide(_st(now=t + 5.0, capture=t + 5.0)) in (LOCAL, BOTH)
+
+
+def test_dispatch_is_the_default_and_takes_its_settings() -> None:
+    from zoffload.runtime.config import PerceptionSettings
+
+    p = PerceptionSettings()
+    assert p.strategy == "dispatch"
+    d = make_strategy(p.strategy, max_in_flight=p.max_in_flight, max_age=p.max_age, local_bias=p.local_bias,
+                      refresh_period=p.refresh_period, cpu_share=p.cpu_share)
+    assert isinstance(d, Dispatcher) and d.max_age == p.max_age and d.window == p.max_in_flight
+    with pytest.raises(ValueError, match="dispatch"):
+        make_strategy("fastest")

@@ -1,4 +1,5 @@
-"""Scan payload coding: quantised, compressed, decoded on the edge within half a step."""
+"""Scan payload coding: quantised, compressed (or not), decoded on the edge within half a step;
+the robot's fused layout from a voxel grid decodes to the grid's centroids."""
 
 from __future__ import annotations
 
@@ -6,7 +7,21 @@ import numpy as np
 import pytest
 
 from zoffload.protocol import wire
-from zoffload.protocol.coding import CodingError, decode_q16z, encode_q16z, quant_step
+from zoffload.protocol.coding import (
+    LAYOUT,
+    RAW,
+    ZSTD,
+    CodingError,
+    compress,
+    decode_q16d,
+    decode_q16z,
+    encode_q16d,
+    encode_q16z,
+    pack_q16,
+    payload_size,
+    quant_step,
+    times_to_u16,
+)
 from zoffload.sources.simulated import SimulatedSource
 
 
@@ -63,3 +78,63 @@ def test_coded_scan_travels_on_the_wire_and_decodes() -> None:
                        quant_step=0.005, n_points=10, origin=origin, packed=np.frombuffer(b"xx", np.uint8))
     with pytest.raises(wire.WireError):
         broken.cloud()
+
+
+def test_q16d_round_trip_compressed_or_not_with_times_and_smaller_than_q16z() -> None:
+    pts = _scan()
+    q, span = times_to_u16(np.linspace(5.0, 5.1, len(pts)))
+    for level in (None, 1, -3):
+        origin, step, blob = encode_q16d(pts, 0.005, level=level, times=q)
+        back, tq = decode_q16d(blob, len(pts), origin, step, with_times=True)
+        assert np.abs(back - pts).max() <= step / 2 + 1e-5
+        np.testing.assert_array_equal(tq, q)
+        assert blob[0] == (RAW if level is None else ZSTD)
+    assert len(encode_q16d(pts, 0.005)[2]) < 0.85 * len(encode_q16z(pts, 0.005)[2])
+
+
+def test_q16d_refuses_what_does_not_fit_before_allocating() -> None:
+    pts = _scan()
+    origin, step, blob = encode_q16d(pts, 0.005)
+    for bad, match in ((b"", "starts with"), (b"\x07" + blob[1:], "starts with"),
+                       (blob[:-3], "corrupt|expected"), (b"\x00" + b"\x00" * 10, "uncompressed")):
+        with pytest.raises(CodingError, match=match):
+            decode_q16d(bad, len(pts), origin, step)
+    with pytest.raises(CodingError, match="declares"):
+        decode_q16d(blob, len(pts) + 1, origin, step)
+    bomb = bytes([ZSTD]) + compress(b"\x00" * 10_000_000, 1)  # declares far more than 10 points need
+    with pytest.raises(CodingError, match="declares"):
+        decode_q16d(bomb, 10, np.zeros(3), 0.01)
+
+
+def test_pack_from_a_voxel_grid_decodes_to_its_centroids_on_the_wire() -> None:
+    from zoffload.mapping.voxel import VoxelGrid
+
+    pts = _scan()
+    times = np.linspace(0.0, 0.1, len(pts))
+    grid = VoxelGrid().run(pts, 0.05, times=times)
+    cent, mean_t = grid.centroids(), grid.mean_times()
+    assert mean_t is not None and grid.tsums is not None
+    for coding in ("q16z", "q16d"):
+        n = len(grid)
+        out = np.empty(1 + payload_size(n, True), np.uint8)
+        ox, oy, oz, step, span, status = pack_q16(grid.sums, grid.counts, grid.tsums, grid.box, 0.005, True,
+                                                  LAYOUT[coding], out[1:])
+        assert status == 0 and step == 0.005 and span == pytest.approx(np.ptp(times))
+        packed = compress(out[1:], 1) if coding == "q16z" else bytes([RAW]) + out[1:].tobytes()
+        msg = wire.Scan(robot="r", seq=1, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.07,
+                        max_range=40.0, n_raw=len(pts), points=np.zeros((0, 3), np.float32), coding=coding,
+                        quant_step=step, n_points=n, origin=np.array([ox, oy, oz]),
+                        packed=np.frombuffer(packed, np.uint8), time_span=span)
+        back, t = wire.decode(wire.encode(msg), expect=wire.Scan).cloud_and_times()
+        assert np.abs(back - cent).max() <= step / 2 + 1e-5
+        assert t is not None
+        np.testing.assert_allclose(t, mean_t - grid.box[6], atol=span / 65535)  # from the first point
+
+
+def test_a_hair_outside_the_box_is_clamped_not_wrapped() -> None:
+    pts = np.array([[0.0, 0.0, 0.0], [655.35, 1.0, 1.0]])
+    out = np.empty(payload_size(2, False), np.uint8)
+    box = np.array([0.0, 0.0, 0.0, 655.35, 1.0, 1.0, 0.0, 0.0])
+    pack_q16(pts + 1e-7, np.empty(0, np.int32), np.empty(0), box, 0.01, False, LAYOUT["q16z"], out)
+    q = out.view("<u2")
+    assert q[1] == 65535  # not 0

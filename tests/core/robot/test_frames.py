@@ -3,18 +3,33 @@ clock, no Zenoh, no model files."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from zoffload.policy.offload import EDGE, HOLD, LOCAL, DeliveryAwareDynamic, EdgeOnly, FixedRatio, RobotOnly
-from zoffload.robot.frames import DONE, DROPPED, FallbackRules, FrameBook
+from zoffload.policy.offload import (
+    BOTH,
+    EDGE,
+    HOLD,
+    LOCAL,
+    SKIP,
+    DeliveryAwareDynamic,
+    EdgeOnly,
+    EdgeReply,
+    FixedRatio,
+    OffloadState,
+    RobotOnly,
+    Strategy,
+)
+from zoffload.robot.frames import DONE, DROPPED, FallbackRules, FrameBook, RobotView
 
 RULES = FallbackRules(reply_timeout=0.5, fallback_losses=3, probe_period=0.5, resume_after=3)
 NONE = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
 ONE = (np.array([[1, 2, 3, 4]], np.float32), np.array([0.9], np.float32))
 
 
-def book(strategy=None) -> FrameBook:
+def book(strategy: Strategy | None = None) -> FrameBook:
     b = FrameBook(strategy or EdgeOnly(), RULES)
     b.edges_changed(True, 0.0)
     return b
@@ -144,3 +159,86 @@ def test_robot_only_never_probes_and_held_frames_are_dropped_window() -> None:
         b.sent(seq, 0.0, False)
     side, _ = b.decide(2, 2, capture=0.01, now=0.01)
     assert side == HOLD and b.records[2]["status"] == "dropped_window" and b.balanced()
+
+
+class Scripted(Strategy):
+    """Returns the given sides in turn and records what it was told."""
+
+    def __init__(self, sides: list[str]) -> None:
+        super().__init__(name="scripted")
+        self.sides = list(sides)
+        self.states: list[OffloadState] = []
+        self.replies: list[EdgeReply] = []
+        self.timeouts: list[float] = []
+
+    def choose(self, st: OffloadState) -> str:
+        self.states.append(st)
+        return self.sides.pop(0)
+
+    def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:
+        assert reply is not None
+        self.replies.append(reply)
+
+    def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
+        self.replies.append(reply)
+
+    def on_edge_timeout(self, waited: float) -> None:
+        self.timeouts.append(waited)
+
+
+def test_skipped_frames_and_copies_each_end_in_one_bucket() -> None:
+    s = Scripted([SKIP, BOTH, BOTH, BOTH, EDGE])
+    b = book(s)
+    for seq in range(5):
+        side, _ = b.decide(seq, seq, capture=0.1 * seq, now=0.1 * seq)
+        if side == BOTH:  # detected locally, and a copy measures the edge
+            b.sent(seq, 0.1 * seq, False, copy=True)
+        elif side == EDGE:
+            b.sent(seq, 0.1 * seq, False)
+    assert b.records[0]["status"] == "skipped" and b.records[0]["side"] == SKIP
+    assert all(b.records[k]["side"] == LOCAL and b.records[k]["copy"] == 1 for k in (1, 2, 3))
+    # the copy's answer is an observation: the frame's bucket is its local result
+    b.records[1]["bytes"] = 1000
+    assert b.edge_result(1, "ok", 0.2, 0.05, 0.0, *ONE) == "copy"
+    assert s.replies[-1].sent == pytest.approx(0.1) and s.replies[-1].bytes == 1000
+    assert b.records[1]["status"] == "pending" and b.waiting_to_send(2) and not b.waiting_to_send(1)
+    b.local_result(1, 0.25, service=0.02, infer_time=0.02, boxes=ONE[0], scores=ONE[1], cpu=0.02)
+    assert b.records[1]["status"] == "local_done" and b.records[1]["copy_rtt_ms"] == pytest.approx(100)
+    # a copy replaced in the sender's slot, or never answered, costs its frame nothing
+    b.send_replaced(2)
+    assert b.counters["copies_replaced"] == 1 and b.records[2]["status"] == "pending"
+    assert b.expire(1.0) == [4] and b.counters["copies_lost"] == 1 and len(s.timeouts) == 2
+    assert b.records[3]["status"] == "pending" and not b.copies
+    for seq in (2, 3):
+        b.local_result(seq, 1.0, service=0.02, infer_time=0.02, boxes=NONE[0], scores=NONE[1])
+    bal = b.balance()
+    assert b.balanced() and bal["pending"] == 0 and bal["skipped"] == 1 and bal["local_done"] == 3
+    assert bal["edge_lost"] == 1 and bal["frames_in"] == 5
+    assert b.counters["copies_answered"] == 1
+
+
+def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:
+    s = Scripted([EDGE, EDGE, LOCAL, EDGE])
+    b = book(s)
+    for seq in range(2):
+        b.decide(seq, seq, capture=0.04 * seq, now=0.04 * seq)
+        b.sent(seq, 0.04 * seq, False)
+        b.records[seq]["bytes"] = 1e6
+    view = RobotView(local_busy=True, local_busy_for=0.01, local_waiting=True, send_waiting=True,
+                     cpu_time=1.5, local_cpu_time=0.5, cpu_quota=0.25, local_last_start=0.07)
+    b.decide(2, 2, capture=0.08, now=0.09, robot=view)
+    st = s.states[-1]
+    assert st.edge_sends == ((0.0, 1e6), (0.04, 1e6)) and st.in_flight == 2 and st.capture == 0.08
+    assert st.local_busy and st.local_waiting and st.send_waiting and st.cpu_quota == 0.25
+    assert st.cpu_time == 1.5 and st.local_cpu_time == 0.5 and st.local_last_start == 0.07
+    # answers: the second was queued behind the first, so their gap is a delivery-rate sample
+    b.edge_result(0, "ok", 0.10, 0.04, 0.0, *NONE)
+    b.edge_result(1, "ok", 0.15, 0.04, 0.0, *NONE)
+    first, second = s.replies
+    assert math.isnan(first.delivery_rate) and second.delivery_rate == pytest.approx(1e6 / 0.05)
+    assert second.service == pytest.approx(0.04) and second.sent == pytest.approx(0.04)
+    # an edge frame the edge dropped from its queue is seen as refused, with no rate sample
+    b.decide(3, 3, capture=0.2, now=0.2)
+    b.sent(3, 0.2, False)
+    assert b.edge_result(3, "dropped", 0.21, float("nan"), float("nan"), *NONE) == "edge_dropped"
+    assert s.replies[-1].status == "dropped" and math.isnan(s.replies[-1].delivery_rate)

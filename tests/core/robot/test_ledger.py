@@ -1,6 +1,9 @@
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from zoffload.protocol import wire
 from zoffload.robot.ledger import ScanLedger
@@ -34,8 +37,8 @@ def test_every_bucket_and_the_balance() -> None:
     assert led.on_ack(ack(5, 999.0), 105.7) == "unknown"  # stamp does not match what was sent
     led.finish()
     b = led.balance()
-    assert b == {"produced": 8, "published": 7, "dropped_source": 1, "acked": 1, "edge_dropped": 1,
-                 "edge_error": 1, "lost": 3, "late": 1, "in_flight": 0}
+    assert b == {"produced": 8, "published": 7, "dropped_source": 1, "sending": 0, "acked": 1,
+                 "edge_dropped": 1, "edge_error": 1, "edge_refused": 0, "lost": 3, "late": 1, "in_flight": 0}
     assert led.balanced()
 
 
@@ -48,3 +51,34 @@ def test_rtt_is_robot_clock_and_network_time_excludes_edge_time() -> None:
     assert abs(rec["rtt"] - 0.2) < 1e-9
     assert abs(rec["network_time"] - (0.2 - 0.021)) < 1e-9
     assert led.last_interarrival == 0.12 and led.interarrivals_seen == 1
+
+
+def test_refused_scans_their_own_bucket_and_scans_with_the_sender_in_theirs() -> None:
+    led = ScanLedger()
+    for seq in range(4):
+        led.produced()
+        led.handed_off(seq, {"n_raw": 10})
+    assert led.balance()["sending"] == 4 and led.balanced()
+    led.drop_at_source(1, "replaced")  # the sender's slot took a newer scan
+    led.published(0, 10.0, {"bytes": 100})
+    led.published(2, 10.1, {"bytes": 100})
+    assert led.records[0]["n_raw"] == 10 and led.records[1]["status"] == "source:replaced"
+    assert led.on_ack(ack(0, 10.0, "refused"), 10.05) == "edge_refused"
+    assert led.on_ack(ack(2, 10.1), 10.15) == "acked"
+    led.finish()  # scan 3 never left: unsent
+    b = led.balance()
+    assert b["edge_refused"] == 1 and b["sending"] == 0 and led.dropped_source["unsent"] == 1
+    assert led.balanced()
+
+
+def test_the_link_figures_the_policy_reads() -> None:
+    led = ScanLedger()
+    for seq in range(30):
+        led.produced()
+        led.published(seq, 100.0 + 0.1 * seq, {"bytes": 1000, "skipped": 1 if seq == 29 else 0})
+        led.on_ack(ack(seq, 100.0 + 0.1 * seq, t=0.2 if seq == 29 else 0.1), 100.05 + 0.1 * seq)
+    assert len(led.recent) == 24 and led.recent[-1].slot == 2 and led.last_slot == 2
+    assert led.recent[-1].net == pytest.approx(0.05 - 0.021)
+    assert led.acked_bytes_per_s(103.0) == 10 * 1000  # acks of the last second
+    assert math.isnan(ScanLedger().acked_bytes_per_s(1.0))  # nothing acked yet: no rate
+    assert led.last_ack_at == pytest.approx(102.95)

@@ -15,6 +15,7 @@ import zenoh
 from tests.daemon.edge.acks import Acks
 from tests.helpers import KEYS, client, listen_on, wait_for, wait_token
 from zoffload.edge.mapping import MappingService
+from zoffload.edge.server import edge_zenoh
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 from zoffload.runtime.session import open_session
@@ -33,7 +34,11 @@ class CuedMapper:
     def map_points(self) -> int:
         return sum(len(c) for c in self.clouds)
 
-    def register(self, seq: int, points: np.ndarray) -> Registration:
+    @property
+    def scans(self) -> int:
+        return len(self.seqs)
+
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         self.entered.append(seq)
         self.gate.wait(10)
         self.seqs.append(seq)
@@ -64,7 +69,7 @@ class CuedRecipe:
     def warm_up(self) -> None:
         pass  # nothing to compile: the stand-in is plain Python
 
-    def __call__(self, scan: wire.Scan) -> CuedMapper:
+    def __call__(self, scan: wire.Scan, spill: object = None) -> CuedMapper:
         mapper = self.mappers.setdefault(scan.robot, CuedMapper())
         if not self.held:
             mapper.gate.set()
@@ -81,8 +86,9 @@ def scan(robot: str, seq: int, n: int = 100, bad: bool = False) -> bytes:
 @contextmanager
 def serving(service: MappingService, port: int) -> Iterator[zenoh.Session]:
     """The service on its own listening session, stopped on exit; a token declared after its
-    declarations (as the server does) tells the test's client when it may send."""
-    session = open_session(listen_on(port))
+    declarations (as the server does) tells the test's client when it may send. The session is
+    the edge's (``edge_zenoh``: acks wait up to 50 ms for room before they are dropped)."""
+    session = open_session(edge_zenoh(listen_on(port)))
     try:
         service.start(session)
         token = session.liveliness().declare_token(KEYS.edge_alive("edge1"))  # held while served

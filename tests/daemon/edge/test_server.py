@@ -72,7 +72,10 @@ def test_malformed_messages_are_counted_and_the_edge_stays_up(free_port: int) ->
         s.put(KEYS.scan("r1"), b"\x00garbage")
         s.put(KEYS.scan("r1"), wire.encode(wire.Pong(edge="x", stamp=0.0)))  # wrong type
         s.put(KEYS.scan("r2"), scan_msg("r1", 0))  # key and payload disagree
-        wait_for(lambda: mapping(edge).counters["malformed"] == 3, what="3 malformed counted")
+        wait_for(lambda: mapping(edge).drops.snapshot() == {"malformed": 2, "foreign": 1},
+                 what="2 malformed and 1 foreign counted")
+        st = mapping(edge).status()
+        assert st["samples"] == 3 and st["drops"] == 3 and st["malformed"] == 2 and "received" not in st
         # an empty scan is a registration error, acked as such
         empty = wire.encode(wire.Scan(robot="r1", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
                                       voxel_max=0.07, max_range=40.0, n_raw=0,
@@ -161,6 +164,9 @@ class Probe:
 
     def status(self) -> dict[str, float]:
         return {f"{self.name}.up": 1.0}
+
+    def evict(self, robot: str) -> None:
+        self.log.append(f"evict {robot}")
 
     def stop(self) -> None:
         self.log.append(f"stop {self.name}")

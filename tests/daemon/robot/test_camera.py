@@ -159,3 +159,57 @@ def test_robot_status_carries_camera_counters(free_port: int) -> None:
     assert all("edges" in v and "local_done" in v for v in seen)
 
 
+
+
+def test_dispatch_uses_both_sides_and_counts_every_frame(free_port: int) -> None:
+    """Our default strategy with a slow local detector and an edge that answers at once: the edge
+    takes most frames, the local detector was measured, and every frame is in exactly one bucket."""
+    settings = RobotSettings(zenoh=listen_on(free_port), scans="none", wait_edge=5.0)
+    with client(free_port) as edge_session:
+        edge = FakeEdge(edge_session)
+        stop = StopSignal()
+        cam = camera("dispatch", 75, stop)
+        metrics = RobotServer(settings, [cam], stop).run()["camera"]
+    b = metrics["balance"]
+    assert metrics["balanced"] and b["frames_in"] == 75 and b["pending"] == 0
+    assert b["edge_done"] >= 40 and b["local_done"] >= 1, b
+    assert edge.served >= b["edge_done"] and metrics["strategy"] == "dispatch"
+
+
+class Previews:
+    def __init__(self, session: zenoh.Session) -> None:
+        self.got: list[tuple[float, wire.Preview]] = []
+        self.sub = session.declare_subscriber(KEYS.preview("robot1"), self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Preview)
+        assert isinstance(msg, wire.Preview)
+        self.got.append((time.monotonic(), msg))
+
+
+def test_previews_go_out_a_few_times_a_second_only_while_someone_watches(free_port: int) -> None:
+    import cv2
+
+    settings = RobotSettings(zenoh=listen_on(free_port), scans="none", wait_edge=5.0)
+    with client(free_port) as s:
+        FakeEdge(s)
+        # nobody watches: nothing is encoded or sent
+        stop = StopSignal()
+        cam = camera("ratio:0.5", 25, stop)
+        RobotServer(settings, [cam], stop).run()
+        assert cam.preview is not None and cam.preview.published == 0
+        # a viewer: at most one preview per period (0.25 s), local and edge frames alike
+        viewer = Previews(s)
+        stop = StopSignal()
+        cam = camera("ratio:0.5", 75, stop)  # 3 s
+        RobotServer(settings, [cam], stop).run()
+        wait_for(lambda: len(viewer.got) >= 4, what="previews")
+        viewer.sub.undeclare()
+    assert len(viewer.got) <= 3 / 0.25 + 2
+    stamps = [m.stamp for _, m in viewer.got]
+    assert all(b - a >= 0.25 - 1e-6 for a, b in zip(stamps, stamps[1:], strict=False))
+    for _, m in viewer.got:
+        assert m.robot == "robot1" and m.side in ("local", "edge") and len(m.boxes) == len(m.scores) == 1
+        img = cv2.imdecode(m.jpeg, cv2.IMREAD_COLOR)
+        assert img is not None and img.shape[:2] == (m.height, m.width) == (48, 64)
+    assert {m.side for _, m in viewer.got} == {"local", "edge"}

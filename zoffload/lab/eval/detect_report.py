@@ -1,11 +1,18 @@
 """``zoffload report`` for ``experiment detect`` runs: the offloading thesis' Tables 6.3–6.5 layout
-(one table per link) with the thesis' own figures beside ours where the thesis states them, and
-plots like its Figures 6.5–6.12 (AP, RTT, processed frames, CPU, bandwidth against the ratio)."""
+(one table per link and robot CPU quota) with the thesis' own figures beside ours where the thesis
+states them, a summary of our strategy against the best fixed one, and plots like its Figures
+6.5–6.12 (AP, RTT, processed frames, CPU, bandwidth against the ratio).
+
+Repeated runs of one experiment (same link, quota, strategy, encoding, images and frame count)
+make one row: every figure as mean ± sd (sample standard deviation) over its ``n`` runs.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import os
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +28,14 @@ THESIS_AP: dict[tuple[str, str], float] = {
     ("detect-capped", "thesis"): 23.0,
 }
 LINK_NAMES = {"none": "unconstrained (Table 6.3)", "detect-capped": "capped 160 Mbps (Table 6.4)",
-              "wifi-locations": "fluctuating Wi-Fi (Table 6.5)"}
+              "wifi-locations": "fluctuating Wi-Fi (Table 6.5)",
+              "mmwave-blockage": "5G mmWave with blockages (held out: never tuned on)"}
 ROW_NAMES = {"robot": "Robot only", "edge": "Edge only", "thesis": "Dynamic (thesis rule)",
-             "dynamic": "Dynamic (ours)", "dynamic@jpeg": "Dynamic (ours) + JPEG frames"}
+             "dynamic": "Dynamic (ours, before)", "dispatch": "**Dispatch (ours)**",
+             "dynamic@jpeg": "Dynamic (ours, before) + JPEG", "dispatch@jpeg": "Dispatch (ours) + JPEG"}
+OURS = "dispatch"
+FIGURES = ["ap50_async", "ap50_sync", "robot_rtt_ms", "edge_rtt_ms", "processed_pct", "offloaded_pct",
+           "skipped_pct", "cpu_process_pct", "power_w", "mbps_out", "mean_lateness_frames"]
 
 
 def is_detect_run(folder: Path) -> bool:
@@ -38,7 +50,8 @@ def _order(strategy: str) -> float:
         return 0.0
     if strategy.startswith("ratio:"):
         return float(strategy.split(":")[1])
-    return {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dynamic@jpeg": 3.5}.get(strategy, 4.0)
+    return {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dynamic@jpeg": 3.5, "dispatch": 4.0,
+            "dispatch@jpeg": 4.5}.get(strategy, 5.0)
 
 
 def offload_ratio(strategy: str) -> float | None:
@@ -46,66 +59,141 @@ def offload_ratio(strategy: str) -> float | None:
     return _order(strategy) if _order(strategy) <= 1.0 else None
 
 
-def _f(x: Any, spec: str) -> str:
-    return "–" if x is None else format(x, spec)
+def is_fixed(strategy: str) -> bool:
+    """Robot only, a fixed ratio or edge only, on raw frames: the baselines ours must beat."""
+    return offload_ratio(strategy) is not None
 
 
-def table(rows: list[dict[str, Any]], trace: str) -> str:
+def _key(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
+    return (r["trace"], str(r.get("cpu_quota")), r["strategy"], str(r.get("images", "coco-clips")),
+            str(r.get("max_frames")))
+
+
+def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per experiment: its runs' figures averaged (``n``, ``sd`` per figure, ``runs``)."""
+    groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+    for r in runs:
+        groups.setdefault(_key(r), []).append(r)
+    rows = []
+    for members in groups.values():
+        row = dict(members[0], n=len(members), sd={}, runs=members,
+                   balanced=all(m.get("balanced") for m in members))
+        for key in FIGURES:
+            values = [float(m[key]) for m in members if isinstance(m.get(key), int | float)
+                      and not isinstance(m.get(key), bool) and math.isfinite(m[key])]
+            row[key] = statistics.fmean(values) if values else None
+            if len(values) > 1:
+                row["sd"][key] = statistics.stdev(values)
+        rows.append(row)
+    return rows
+
+
+def _cell(r: dict[str, Any], key: str, spec: str) -> str:
+    value = r.get(key)
+    if value is None:
+        return "–"
+    sd = r.get("sd", {}).get(key)
+    return format(value, spec) + (f" ± {format(sd, spec)}" if sd is not None else "")
+
+
+def _quota(r: dict[str, Any]) -> str:
+    return "no quota" if r.get("cpu_quota") in (None, 0) else f"{r['cpu_quota']:g} core"
+
+
+def table(rows: list[dict[str, Any]], trace: str, quota: str) -> str:
     lines = [
-        f"### {LINK_NAMES.get(trace, trace)}",
+        f"### {LINK_NAMES.get(trace, trace)}, robot {quota}",
         "",
-        "| strategy | async AP50 % | thesis async AP % | sync AP50 % | robot RTT ms | edge RTT ms "
-        "| processed % | offloaded % | robot CPU % | power W | Mbps out |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| strategy | runs | async AP50 % | thesis async AP % | sync AP50 % | robot RTT ms | edge RTT ms "
+        "| processed % | offloaded % | skipped % | robot CPU % | power W | Mbps out |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: _order(r["strategy"])):
         name = ROW_NAMES.get(r["strategy"], r["strategy"].replace("ratio:", "Ratio "))
-        power = r.get("power_w") if r.get("power_available") else None
+        power = _cell(r, "power_w", ".1f") if r.get("power_available") else "n/a"
         lines.append(
-            f"| {name} | {_f(r.get('ap50_async'), '.1f')} "
-            f"| {_f(THESIS_AP.get((trace, r['strategy'])), '.1f')} "
-            f"| {_f(r.get('ap50_sync'), '.1f')} | {_f(r.get('robot_rtt_ms'), '.0f')} "
-            f"| {_f(r.get('edge_rtt_ms'), '.0f')} | {_f(r.get('processed_pct'), '.0f')} "
-            f"| {_f(r.get('offloaded_pct'), '.0f')} | {_f(r.get('cpu_process_pct'), '.0f')} "
-            f"| {'n/a' if power is None else format(power, '.1f')} | {_f(r.get('mbps_out'), '.0f')} |")
+            f"| {name} | {r['n']} | {_cell(r, 'ap50_async', '.1f')} "
+            f"| {THESIS_AP.get((trace, r['strategy']), '–')} "
+            f"| {_cell(r, 'ap50_sync', '.1f')} | {_cell(r, 'robot_rtt_ms', '.0f')} "
+            f"| {_cell(r, 'edge_rtt_ms', '.0f')} | {_cell(r, 'processed_pct', '.0f')} "
+            f"| {_cell(r, 'offloaded_pct', '.0f')} | {_cell(r, 'skipped_pct', '.0f')} "
+            f"| {_cell(r, 'cpu_process_pct', '.0f')} | {power} | {_cell(r, 'mbps_out', '.0f')} |")
     return "\n".join(lines)
 
 
-def _traces(runs: list[dict[str, Any]]) -> list[str]:
+def targets(rows: list[dict[str, Any]]) -> str:
+    """Ours against the best fixed strategy (any ratio, robot only, edge only) per link and quota."""
+    lines = ["### Ours against the best fixed strategy (async AP50 %, mean ± sd over the runs)", "",
+             "| link | robot | dispatch (ours) | best fixed | edge only | ours − best fixed "
+             "| ours − edge only |",
+             "|---|---|---|---|---|---|---|"]
+    for (trace, quota), group in _cells(rows):
+        ours = next((r for r in group if r["strategy"] == OURS), None)
+        fixed = [r for r in group if is_fixed(r["strategy"]) and r.get("ap50_async") is not None]
+        if ours is None or ours.get("ap50_async") is None or not fixed:
+            continue
+        best = max(fixed, key=lambda r: r["ap50_async"])
+        edge = next((r for r in group if r["strategy"] == "edge"), None)
+        name = ROW_NAMES.get(best["strategy"], best["strategy"].replace("ratio:", "ratio "))
+        vs_edge = (f"{ours['ap50_async'] - edge['ap50_async']:+.1f}"
+                   if edge and edge.get("ap50_async") is not None else "–")
+        lines.append(f"| {LINK_NAMES.get(trace, trace)} | {quota} | {_cell(ours, 'ap50_async', '.1f')} "
+                     f"| {name}: {_cell(best, 'ap50_async', '.1f')} "
+                     f"| {_cell(edge, 'ap50_async', '.1f') if edge else '–'} "
+                     f"| {ours['ap50_async'] - best['ap50_async']:+.1f} | {vs_edge} |")
+    lines += ["", "The best fixed strategy is the highest of eleven noisy means, so it is biased upwards; "
+              "read a margin within the runs' spread as a tie."]
+    return "\n".join(lines)
+
+
+def _traces(rows: list[dict[str, Any]]) -> list[str]:
     known = list(LINK_NAMES)
-    return sorted({r["trace"] for r in runs}, key=lambda t: known.index(t) if t in known else len(known))
+    return sorted({r["trace"] for r in rows}, key=lambda t: known.index(t) if t in known else len(known))
 
 
-def plot(runs: list[dict[str, Any]], out: Path) -> list[Path]:
+def _cells(rows: list[dict[str, Any]]) -> list[tuple[tuple[str, str], list[dict[str, Any]]]]:
+    """Rows grouped by link and quota, in the thesis' link order, the weaker robot first."""
+    quotas = sorted({_quota(r) for r in rows}, key=lambda q: (q == "no quota", q))
+    return [((t, q), [r for r in rows if r["trace"] == t and _quota(r) == q])
+            for q in quotas for t in _traces(rows) if any(r["trace"] == t and _quota(r) == q for r in rows)]
+
+
+def plot(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     plt = _plt()
-    metrics = [("ap50_async", "asynchronous AP50 [%]", "ap_vs_ratio.png"),
-               ("edge_rtt_ms", "edge RTT [ms]", "edge_rtt_vs_ratio.png"),
-               ("robot_rtt_ms", "robot RTT [ms]", "robot_rtt_vs_ratio.png"),
-               ("processed_pct", "processed frames [%]", "processed_vs_ratio.png"),
-               ("cpu_process_pct", "robot CPU [%]", "cpu_vs_ratio.png"),
-               ("mbps_out", "robot outgoing [Mbps]", "mbps_vs_ratio.png")]
-    traces = _traces(runs)
+    metrics = [("ap50_async", "asynchronous AP50 [%]", "ap_vs_ratio"),
+               ("edge_rtt_ms", "edge RTT [ms]", "edge_rtt_vs_ratio"),
+               ("robot_rtt_ms", "robot RTT [ms]", "robot_rtt_vs_ratio"),
+               ("processed_pct", "processed frames [%]", "processed_vs_ratio"),
+               ("cpu_process_pct", "robot CPU [%]", "cpu_vs_ratio"),
+               ("mbps_out", "robot outgoing [Mbps]", "mbps_vs_ratio")]
+    quotas = sorted({_quota(r) for r in rows})
     paths = []
-    for key, label, name in metrics:
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for i, trace in enumerate(traces):
-            rs = [r for r in runs if r["trace"] == trace]
-            pts = sorted((x, r.get(key)) for r in rs if (x := offload_ratio(r["strategy"])) is not None
-                         and r.get(key) is not None)
-            color = f"C{i}"
-            if pts:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=color,
-                        label=LINK_NAMES.get(trace, trace))
-            for r in rs:
-                if r["strategy"] in ("thesis", "dynamic") and r.get(key) is not None:  # lines: rules
-                    ax.axhline(r[key], color=color, ls="--" if r["strategy"] == "dynamic" else ":", lw=1)
-        ax.set_xlabel("offloading ratio (0 = robot only, 1 = edge only); dashed: ours, dotted: thesis rule")
-        ax.set_ylabel(label)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / name, dpi=100)
-        plt.close(fig)
-        paths.append(out / name)
+    for quota in quotas:
+        rs_q = [r for r in rows if _quota(r) == quota]
+        suffix = "" if len(quotas) == 1 else "_" + quota.replace(" ", "")
+        for key, label, name in metrics:
+            fig, ax = plt.subplots(figsize=(7, 4))
+            for i, trace in enumerate(_traces(rs_q)):
+                rs = [r for r in rs_q if r["trace"] == trace]
+                pts = sorted((x, r[key], r["sd"].get(key, 0.0)) for r in rs
+                             if (x := offload_ratio(r["strategy"])) is not None and r.get(key) is not None)
+                color = f"C{i}"
+                if pts:
+                    ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], fmt="o-",
+                                color=color, capsize=2, label=LINK_NAMES.get(trace, trace))
+                for r in rs:  # lines: the rules
+                    if r["strategy"] in ("thesis", OURS) and r.get(key) is not None:
+                        ax.axhline(r[key], color=color, ls="--" if r["strategy"] == OURS else ":", lw=1)
+            ax.set_xlabel("offloading ratio (0 = robot only, 1 = edge only); dashed: ours, "
+                          "dotted: thesis rule")
+            ax.set_ylabel(label)
+            ax.set_title(f"robot {quota}", fontsize=9)
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            path = out / f"{name}{suffix}.png"
+            fig.savefig(path, dpi=100)
+            plt.close(fig)
+            paths.append(path)
     return paths
 
 
@@ -117,19 +205,25 @@ def write_detect_report(folders: list[Path], out: Path | None = None) -> Path:
         runs.append(r)
     out = out or Path(os.path.commonpath([str(f.resolve()) for f in folders]))
     out.mkdir(parents=True, exist_ok=True)
-    figures = plot(runs, out)
-    traces = _traces(runs)
-    quota = sorted({str(r.get("cpu_quota")) for r in runs})
+    rows = aggregate(runs)
+    figures = plot(rows, out)
+    images = sorted({str(r.get("images", "coco-clips")) for r in rows})
+    unbalanced = [str(m["folder"]) for r in rows for m in r["runs"] if not m.get("balanced")]
     text = [
         "# Perception offloading: the thesis' Tables 6.3–6.5 layout",
         "",
-        *[table([r for r in runs if r["trace"] == t], t) + "\n" for t in traces],
+        *[table(group, trace, quota) + "\n" for (trace, quota), group in _cells(rows)],
+        targets(rows),
+        "",
+        f"Images: {', '.join(images)}. {len(runs)} runs in {len(rows)} rows; every frame in exactly one "
+        f"bucket in {'all of them' if not unbalanced else 'all but ' + ', '.join(unbalanced)}.",
         "Async AP50: person AP at IoU 0.5 over every camera frame, each result scored against the ground",
         "truth of the frame current when the robot received it, frames never processed scoring nothing;",
         "sync AP50: processed frames against their own ground truth. RTT: camera capture to result on",
-        "the robot. CPU: the robot process (one core = 100 %), under a CFS quota of "
-        f"{', '.join(quota)} core(s). Power: RAPL, n/a where the machine has none. The thesis column",
-        "holds the figures the thesis states for that cell; the others are left empty, not guessed.",
+        "the robot. Skipped: frames no side could finish while fresh (ours). CPU: the robot process",
+        "(one core = 100 %) under its CFS quota. Power: RAPL, n/a where the machine has none. Rows of",
+        "several runs show mean ± sd. The thesis column holds the figures the thesis states for that",
+        "cell; the others are left empty, not guessed.",
         "",
     ]
     return save_report(out, text, runs, figures)

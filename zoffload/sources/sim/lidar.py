@@ -66,8 +66,8 @@ def _rings_hit(  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _cast(  # pragma: no cover - compiled
-    origin: np.ndarray,
-    yaw: float,
+    origins: np.ndarray,
+    yaws: np.ndarray,
     azimuths: np.ndarray,
     tan_el: np.ndarray,
     box_min: np.ndarray,
@@ -80,9 +80,10 @@ def _cast(  # pragma: no cover - compiled
     nring = tan_el.shape[0]
     # horizontal distance to the first hit per (column, ring); inf = no return
     hit = np.full((ncol, nring), np.inf)
-    ox, oy, oz = origin[0], origin[1], origin[2]
     for c in range(ncol):
-        a = azimuths[c] + yaw
+        # Each column fires from where the sensor is at its own firing time
+        ox, oy, oz = origins[c, 0], origins[c, 1], origins[c, 2]
+        a = azimuths[c] + yaws[c]
         dx = np.cos(a)
         dy = np.sin(a)
         # Floor
@@ -133,19 +134,32 @@ def _cast(  # pragma: no cover - compiled
 
 
 def cast_scan(
-    scene: Scene, pose: np.ndarray, model: LidarModel = VLP16, rng: np.random.Generator | None = None
+    scene: Scene, pose: np.ndarray, model: LidarModel = VLP16, rng: np.random.Generator | None = None,
+    column_poses: np.ndarray | None = None,
 ) -> np.ndarray:
     """Ray-cast one scan from ``pose`` (4x4 sensor-to-world, level); points in the sensor frame,
     float32 (N, 3), ordered column by column like a spinning sensor's packets. With ``rng``, the
     range noise is added and the firing phase is random, as a real sensor's scans never start at
-    exactly the same azimuth."""
+    exactly the same azimuth. ``column_poses`` (columns, 4, 4): each column fired from its own
+    pose (a sensor moving during its sweep), its points in that pose's frame, as a real sensor
+    reports them; ``pose`` is then unused."""
+    return cast_columns(scene, pose, model, rng, column_poses)[0]
+
+
+def cast_columns(
+    scene: Scene, pose: np.ndarray, model: LidarModel = VLP16, rng: np.random.Generator | None = None,
+    column_poses: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``cast_scan``'s points and the column (0 .. columns-1, firing order) of each."""
     phase = float(rng.uniform(0.0, model.azimuth_step_deg)) if rng is not None else 0.0
     azimuths = np.deg2rad(np.arange(model.columns) * model.azimuth_step_deg + phase)
     el = np.deg2rad(np.asarray(model.elevations_deg))
-    yaw = float(np.arctan2(pose[1, 0], pose[0, 0]))
+    poses = (np.broadcast_to(pose, (model.columns, 4, 4)) if column_poses is None
+             else np.asarray(column_poses, np.float64).reshape(model.columns, 4, 4))
+    yaws = np.arctan2(poses[:, 1, 0], poses[:, 0, 0])
     hit = _cast(
-        np.ascontiguousarray(pose[:3, 3], np.float64), yaw, azimuths, np.tan(el),
-        scene.box_min, scene.box_max, scene.cylinders, scene.floor_z, model.max_range,
+        np.ascontiguousarray(poses[:, :3, 3], np.float64), np.ascontiguousarray(yaws), azimuths,
+        np.tan(el), scene.box_min, scene.box_max, scene.cylinders, scene.floor_z, model.max_range,
     )
     # Horizontal distance -> range along the beam
     rng_ = hit / np.cos(el)[None, :]
@@ -158,4 +172,4 @@ def cast_scan(
     pts = np.stack(
         [r * ce * np.cos(azimuths[col]), r * ce * np.sin(azimuths[col]), r * np.sin(el[ring])], axis=1
     )
-    return pts.astype(np.float32)
+    return pts.astype(np.float32), col

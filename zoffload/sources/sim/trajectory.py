@@ -49,6 +49,12 @@ class Trajectory:
         return pose
 
 
+    def poses_at(self, times: np.ndarray) -> np.ndarray:
+        """``pose_at`` of many times at once, (n, 4, 4) (a sweep's column poses); times before
+        the start are the start."""
+        return np.stack([self.pose_at(max(0.0, float(t))) for t in np.asarray(times, np.float64)])
+
+
 def _chaikin(points: np.ndarray, rounds: int) -> np.ndarray:
     """Corner-cutting on a closed polygon: rounds the corners so yaw changes smoothly."""
     for _ in range(rounds):

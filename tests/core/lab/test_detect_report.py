@@ -1,0 +1,44 @@
+"""The detection report: repeated runs make one row (mean ± sd), ours against the best fixed one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from zoffload.lab.eval.detect_report import aggregate, targets, write_detect_report
+
+
+def _run(folder: Path, strategy: str, ap: float, trace: str = "detect-capped", quota: float = 0.25) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "kind": "detect", "strategy": strategy, "trace": trace, "cpu_quota": quota, "encoding": "bgr8",
+        "images": "coco-clips@holdout", "max_frames": None, "ap50_async": ap, "ap50_sync": 80.0,
+        "processed_pct": 70.0, "offloaded_pct": 60.0, "skipped_pct": 5.0, "robot_rtt_ms": 50.0,
+        "edge_rtt_ms": 120.0, "cpu_process_pct": 25.0, "mbps_out": 150.0, "power_w": None,
+        "power_available": False, "balanced": True, "robot_exit_code": 0, "cut_short": False}))
+    return folder
+
+
+def test_repeated_runs_are_one_row_with_mean_and_sd(tmp_path: Path) -> None:
+    folders = [_run(tmp_path / "q0.25" / "detect-capped" / s.replace(":", "_") / f"run{i}", s, ap)
+               for s, aps in (("dispatch", (55.0, 57.0, 59.0)), ("ratio:0.9", (50.0, 52.0, 54.0)),
+                              ("edge", (45.0, 46.0, 47.0)))
+               for i, ap in enumerate(aps, 1)]
+    folders.append(_run(tmp_path / "q1" / "detect-capped" / "edge" / "run1", "edge", 40.0, quota=1.0))
+    runs = [dict(json.loads((f / "results.json").read_text()), folder=f) for f in folders]
+    rows = {(r["strategy"], r["cpu_quota"]): r for r in aggregate(runs)}
+    assert len(rows) == 4
+    ours = rows[("dispatch", 0.25)]
+    assert ours["n"] == 3 and ours["ap50_async"] == pytest.approx(57.0)
+    assert ours["sd"]["ap50_async"] == pytest.approx(2.0)
+    assert rows[("edge", 1.0)]["n"] == 1 and "ap50_async" not in rows[("edge", 1.0)]["sd"]
+    summary = targets(list(rows.values()))
+    assert "57.0 ± 2.0" in summary and "ratio 0.9: 52.0 ± 2.0" in summary and "| +5.0 |" in summary
+    path = write_detect_report(folders, tmp_path)
+    text = path.read_text()
+    assert "robot 0.25 core" in text and "robot 1 core" in text
+    assert "| **Dispatch (ours)** | 3 | 57.0 ± 2.0 |" in text
+    assert "every frame in exactly one bucket in all of them" in text
+    assert (tmp_path / "ap_vs_ratio_0.25core.png").exists()

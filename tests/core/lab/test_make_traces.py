@@ -1,0 +1,45 @@
+"""The generated traces: the committed files are what the seeded script writes, and each holds
+what it claims (the cellular rates, delays, jitter and outages; the Wi-Fi bursts)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from zoffload.lab.link.make_traces import TRACES, main, to_csv
+from zoffload.lab.link.trace import load_trace, parse_trace
+
+
+def test_committed_traces_are_what_the_script_writes(tmp_path: Path) -> None:
+    main(["--out", str(tmp_path)])
+    shipped = Path(__file__).parents[3] / "zoffload" / "lab" / "link" / "traces"
+    for name in TRACES:
+        assert (tmp_path / f"{name}.csv").read_text() == (shipped / f"{name}.csv").read_text(), name
+        load_trace(name)  # parses
+
+
+def test_cellular_is_a_bounded_random_walk_with_outages() -> None:
+    for name in ("cellular", "cellular-heldout"):
+        t = load_trace(name)
+        live = [s for s in t.states if not s.outage]
+        assert all(2.0 <= s.up_mbps <= 40.0 and 30 <= s.delay_ms <= 70 and 5 <= s.jitter_ms <= 20
+                   for s in live)
+        outages = [(t0, t1) for t0, t1, s in zip(t.times, t.times[1:], t.states, strict=False) if s.outage]
+        assert len(outages) >= 2 and all(1.0 <= t1 - t0 <= 4.05 for t0, t1 in outages)
+        assert t.duration >= 85
+
+
+def test_congested_wifi_alternates_bursts_and_quiet_spells() -> None:
+    for name in ("wifi-congested", "wifi-congested-heldout"):
+        t = load_trace(name)
+        ups = np.array([s.up_mbps for s in t.states])
+        low = ups < 0.3 * np.median(ups[ups > 40])
+        assert 0.3 < low.mean() < 0.7 and (np.diff(low.astype(int)) != 0).sum() > 40
+        assert all(s.jitter_ms >= 10 for s, b in zip(t.states, low, strict=True) if b)
+
+
+def test_csv_round_trip() -> None:
+    rows = [(0.0, 10.0, 20.0, 30.0, 5.0, 0), (1.5, 0.0, 0.0, 0.0, 0.0, 1)]
+    t = parse_trace(to_csv(rows, "a comment"))
+    assert t.times == (0.0, 1.5) and t.states[1].outage and t.states[0].down_mbps == 20.0

@@ -1,0 +1,80 @@
+"""The voxel grid's pass as the robot uses it: invalid points skipped and counted, per-point times
+averaged per voxel, the points' bounds, a salted hash, and scratch buffers held side by side."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from tests.core.mapping.test_voxel import reference_grid
+from zoffload.mapping.voxel import VoxelGrid, new_salt, voxel_downsample_counts
+
+
+def test_invalid_points_are_skipped_and_counted_and_the_rest_is_the_papers_grid() -> None:
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-5, 5, size=(4000, 3)).astype(np.float32)
+    dirty = pts.copy()
+    dirty[[3, 77, 900], 1] = np.nan
+    dirty[[10, 11], 0] = np.inf
+    dirty[500] = [1e9, 0, 0]  # off the grid at 1 cm
+    grid = VoxelGrid().run(dirty, 0.01, skip_invalid=True)
+    assert grid.n_invalid == 6 and grid.counts.sum() == 4000 - 6
+    clean = np.delete(pts, [3, 77, 900, 10, 11, 500], axis=0)
+    ref = reference_grid(clean, 0.01)
+    got = grid.centroids()
+    assert len(got) == len(ref)
+    np.testing.assert_allclose(np.array(sorted(map(tuple, got))), np.array(sorted(map(tuple, ref.values()))),
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(grid.box[:3], clean.min(axis=0), rtol=0, atol=0)
+    np.testing.assert_allclose(grid.box[3:6], clean.max(axis=0), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="NaN"):
+        VoxelGrid().run(dirty, 0.01)
+
+
+def test_a_centroid_time_is_the_mean_of_its_points_times() -> None:
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.05, 0.07], [0.15, 0.0, 0.0], [0.02, 0.02, 0.02]])
+    times = np.array([1000.0, 1000.02, 1000.05, 1000.04])  # any offset
+    grid = VoxelGrid().run(pts, 0.1, times=times)
+    assert grid.counts.tolist() == [3, 1]
+    mean_t = grid.mean_times()
+    assert mean_t is not None
+    np.testing.assert_allclose(grid.t_ref + mean_t, [1000.02, 1000.05], atol=1e-9)
+    np.testing.assert_allclose(grid.box[6:], [0.0, 0.05], atol=1e-9)  # relative to t_ref
+    bad = times.copy()
+    bad[1] = np.nan
+    skipped = VoxelGrid().run(pts, 0.1, times=bad, skip_invalid=True)
+    assert skipped.n_invalid == 1 and skipped.counts.tolist() == [2, 1]
+
+
+def test_two_buffers_hold_two_sizes_of_one_scan() -> None:
+    pts = np.random.default_rng(1).normal(size=(5000, 3))
+    grid = VoxelGrid(buffers=2)
+    a = grid.run(pts, 0.2, buffer=0)
+    b = grid.run(pts, 0.5, buffer=1)
+    np.testing.assert_allclose(a.centroids(), voxel_downsample_counts(pts, 0.2)[0], atol=1e-12)
+    np.testing.assert_allclose(b.centroids(), voxel_downsample_counts(pts, 0.5)[0], atol=1e-12)
+
+
+def test_the_salt_moves_slots_not_results_and_scatters_crafted_points() -> None:
+    from benchmarks.bench_collisions import crafted_points
+
+    crafted = crafted_points(20_000, 0.1)  # voxels that share one probe chain under the plain hash
+    plain, salted = VoxelGrid(salt=np.int64(0)), VoxelGrid(salt=new_salt())
+    a, b = plain.run(crafted, 0.1), salted.run(crafted, 0.1)
+    np.testing.assert_array_equal(a.centroids(), b.centroids())
+    rand = np.random.default_rng(0).uniform(-50, 50, size=(20_000, 3))
+
+    def best(grid: VoxelGrid, pts: np.ndarray) -> float:
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            grid.run(pts, 0.1)
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    unsalted, with_salt, random_t = best(plain, crafted), best(salted, crafted), best(salted, rand)
+    # Loose bounds: the machine is shared
+    assert unsalted > 10 * with_salt, (unsalted, with_salt)
+    assert with_salt < 10 * random_t + 0.02, (with_salt, random_t)

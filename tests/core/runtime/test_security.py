@@ -1,0 +1,153 @@
+"""The secure deployment's pure parts: certificates, the generated ACL, and the TLS/user session
+settings turned into Zenoh config keys."""
+
+from __future__ import annotations
+
+import json
+import stat
+from pathlib import Path
+
+import pytest
+
+from zoffload.protocol.keys import Keys
+from zoffload.runtime.acl import access_control, router_config
+from zoffload.runtime.config import ZenohSettings
+from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.session import security_entries, zenoh_config
+
+
+def rules_of(acl: dict, subject: str) -> list[dict]:
+    policy = next(p for p in acl["policies"] if p["subjects"] == [subject])
+    return [r for r in acl["rules"] if r["id"] in policy["rules"]]
+
+
+def allowed(acl: dict, subject: str, flow: str, message: str, key: str) -> bool:
+    """Whether a rule of the subject allows it (the rule key must include the message key: here
+    checked for exact keys and trailing ``*``/``**`` chunks, all the generator uses)."""
+    def includes(rule_key: str, k: str) -> bool:
+        r, m = rule_key.split("/"), k.split("/")
+        if r[-1] == "**":
+            return m[:len(r) - 1] == r[:-1]
+        return len(r) == len(m) and all(a in ("*", b) for a, b in zip(r, m, strict=True))
+
+    return any(flow in r["flows"] and message in r["messages"]
+               and any(includes(k, key) for k in r["key_exprs"]) for r in rules_of(acl, subject))
+
+
+def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() -> None:
+    k = Keys()
+    acl = access_control(k, ["robot1", "robot2"], ["edge1"], ["mon"])
+    assert acl["default_permission"] == "deny" and acl["enabled"]
+    assert allowed(acl, "robot_robot1", "ingress", "put", k.scan("robot1"))
+    assert allowed(acl, "robot_robot1", "ingress", "put", k.frame("robot1"))
+    assert allowed(acl, "robot_robot1", "ingress", "put", k.robot_status("robot1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "put", k.scan("robot2"))
+    assert not allowed(acl, "robot_robot1", "ingress", "put", k.scan_ack("robot1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "put", k.detections("robot2"))
+    assert not allowed(acl, "robot_robot1", "ingress", "liveliness_token", k.edge_alive("edge1"))
+    assert allowed(acl, "robot_robot1", "ingress", "liveliness_token", k.robot_alive("robot1"))
+    assert not allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot2"))  # no eavesdropping
+    assert allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot1"))
+    assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "query", k.map("robot2"))
+    assert not allowed(acl, "robot_robot1", "ingress", "declare_queryable", k.all_maps())
+    # the edge answers everyone, and nothing else
+    for key in (k.scan_ack("robot1"), k.scan_ack("robot2"), k.detections("robot2"), k.edge_status("edge1")):
+        assert allowed(acl, "edge_edge1", "ingress", "put", key)
+    assert not allowed(acl, "edge_edge1", "ingress", "put", k.scan("robot1"))
+    assert allowed(acl, "edge_edge1", "ingress", "declare_subscriber", k.all_scans())
+    assert allowed(acl, "edge_edge1", "ingress", "declare_queryable", k.all_pings())
+    assert allowed(acl, "edge_edge1", "ingress", "liveliness_token", k.edge_alive("edge1"))
+    assert not allowed(acl, "edge_edge1", "ingress", "liveliness_token", k.edge_alive("edge2"))
+    # the monitor only reads
+    assert allowed(acl, "monitor_mon", "egress", "put", k.edge_status("edge1"))
+    assert not any("put" in r["messages"] and "ingress" in r["flows"] for r in rules_of(acl, "monitor_mon"))
+    # declarations flow to every client (a Publisher would drop every put without them)
+    assert all(allowed(acl, s["id"], "egress", "declare_subscriber", k.all_scans()) for s in acl["subjects"])
+
+
+def test_identities_must_be_ids_and_distinct() -> None:
+    with pytest.raises(ValueError):
+        access_control(Keys(), ["robot/1"], ["edge1"])
+    with pytest.raises(ValueError, match="distinct"):
+        access_control(Keys(), ["x"], ["x"])
+    acl = access_control(Keys(), ["r1"], ["e1"], usernames=True)
+    assert all(s["usernames"] == s["cert_common_names"] for s in acl["subjects"])
+
+
+def test_router_config_speaks_tls_only() -> None:
+    conf = router_config(["tls/0.0.0.0:7447"], "/c/ca.pem", "/c/router.pem", "/c/router.key",
+                         {"enabled": True}, users_file="/c/users.txt")
+    assert conf["transport"]["link"]["protocols"] == ["tls"]
+    assert conf["transport"]["link"]["tls"]["enable_mtls"] is True
+    assert conf["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/c/users.txt"
+    assert conf["scouting"]["multicast"]["enabled"] is False
+
+
+def test_certificates_chain_to_the_ca_with_the_identity_as_common_name(tmp_path: Path) -> None:
+    pytest.importorskip("cryptography")
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    from zoffload.runtime.certs import write_deployment
+
+    written = write_deployment(tmp_path, ["robot1"], ["edge1"], ["mon"], router_names=["router", "10.0.0.2"],
+                               passwords=True)
+    ca = x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes())
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    for name in ("robot1", "edge1", "mon", "router"):
+        cert = x509.load_pem_x509_certificate((tmp_path / f"{name}.pem").read_bytes())
+        assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == name
+        assert cert.issuer == ca.subject
+        cert.verify_directly_issued_by(ca)
+        assert not cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+        assert stat.S_IMODE((tmp_path / f"{name}.key").stat().st_mode) == 0o600
+    router = x509.load_pem_x509_certificate((tmp_path / "router.pem").read_bytes())
+    san = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.DNSName) == ["router"]
+    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["10.0.0.2"]
+    users = (tmp_path / "users.txt").read_text().split()
+    assert sorted(u.split(":")[0] for u in users) == ["edge1", "mon", "robot1"]
+    assert stat.S_IMODE((tmp_path / "users.txt").stat().st_mode) == 0o600
+    text = written["router.json5"].read_text()
+    conf = json.loads("\n".join(ln for ln in text.splitlines() if not ln.startswith("//")))
+    assert conf["transport"]["link"]["tls"]["root_ca_certificate"] == f"{tmp_path.resolve()}/ca.pem"
+    # Run again with one more robot: the CA is kept, so the others' certificates stay valid
+    write_deployment(tmp_path, ["robot1", "robot2"], ["edge1"])
+    assert x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes()) == ca
+
+
+def test_tls_settings_become_zenoh_keys(tmp_path: Path) -> None:
+    for name in ("ca.pem", "me.pem", "me.key", "pw"):
+        (tmp_path / name).write_text("secret\n" if name == "pw" else "x")
+    z = ZenohSettings(mode="client", connect=["tls/router:7447"], tls_ca=str(tmp_path / "ca.pem"),
+                      tls_cert=str(tmp_path / "me.pem"), tls_key=str(tmp_path / "me.key"), user="me",
+                      password_file=str(tmp_path / "pw"))
+    e = security_entries(z)
+    tls = "transport/link/tls/"
+    assert e[tls + "enable_mtls"] is True  # without it on the client, Zenoh sends no certificate
+    assert e[tls + "connect_certificate"] == e[tls + "listen_certificate"] == str(tmp_path / "me.pem")
+    assert e["transport/auth/usrpwd/password"] == "secret"
+    conf = zenoh_config(z)
+    assert json.loads(conf.get_json(tls + "root_ca_certificate")) == str(tmp_path / "ca.pem")
+    assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == "me"
+    assert security_entries(ZenohSettings()) == {}
+    with pytest.raises(ZenohSessionError, match="need tls_ca"):
+        security_entries(ZenohSettings(tls_cert="a", tls_key="b"))
+    with pytest.raises(ZenohSessionError, match="go together"):
+        security_entries(ZenohSettings(tls_ca=str(tmp_path / "ca.pem"), tls_cert=str(tmp_path / "me.pem")))
+    with pytest.raises(ZenohSessionError, match="cannot read"):
+        security_entries(ZenohSettings(tls_ca=str(tmp_path / "missing.pem")))
+    with pytest.raises(ZenohSessionError, match="password_file"):
+        security_entries(ZenohSettings(user="me"))
+
+
+def test_a_config_file_keeps_its_mode_and_scouting_unless_they_are_given(tmp_path: Path) -> None:
+    f = tmp_path / "z.json5"
+    f.write_text('{ mode: "client", scouting: { multicast: { enabled: false } } }')
+    conf = zenoh_config(ZenohSettings(config_file=str(f)))
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    conf = zenoh_config(ZenohSettings(config_file=str(f), mode="router", multicast_scouting=True))
+    assert json.loads(conf.get_json("mode")) == "router"
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is True

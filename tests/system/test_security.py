@@ -1,0 +1,208 @@
+"""The secure deployment as local processes: a `zoffload router` with TLS, client certificates and
+the generated default-deny ACL; `zoffload-edge` and `zoffload-robot` as clients with their own
+certificates; the test's sessions as attackers holding a robot's identity, or none."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests.helpers import KEYS, wait_for, wait_token
+from tests.system.procs import Proc, script
+from tests.system.secure import Deployment, deploy
+from zoffload.lab.runner import StatusWatcher
+from zoffload.protocol import wire
+from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.session import open_session
+
+pytestmark = pytest.mark.system
+pytest.importorskip("kiss_icp")
+pytest.importorskip("cryptography")
+
+
+class EdgeStatus:
+    """The edge's latest status values, through a monitor session."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.values: dict[str, float] = {}
+        self.sub = session.declare_subscriber(KEYS.edge_status("edge1"), self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        self.values = dict(wire.decode(sample.payload.to_bytes(), expect=wire.Status).values)
+
+
+def forged_ack(robot: str, seq: int, stamp: float) -> bytes:
+    return wire.encode(wire.ScanAck(robot=robot, seq=seq, send_stamp=stamp, status="ok", interarrival=0.1,
+                                    queue_time=0.0, proc_time=0.01, icp_time=0.01, map_points=1, keypoints=1,
+                                    sigma=0.1, pose=np.eye(4), edge="edge1"))
+
+
+def refused(d: Deployment, **over: object) -> bool:
+    try:
+        open_session(d.settings(**over)).close()  # type: ignore[arg-type]
+    except ZenohSessionError:
+        return True
+    return False
+
+
+def test_unauthenticated_clients_are_refused(free_port: int, tmp_path: Path) -> None:
+    d = deploy(tmp_path, free_port, ["robot1"], ["edge1"])
+    try:
+        from zoffload.runtime.certs import make_ca, make_leaf, write_pair
+
+        rogue = make_ca("rogue CA")
+        write_pair(tmp_path, "rogue", make_leaf(rogue, "robot1"))  # claims robot1, wrong issuer
+        assert refused(d, identity=None)  # no client certificate
+        assert refused(d, identity=None, tls_ca=None, connect=[f"tcp/127.0.0.1:{free_port}"])  # plain tcp
+        assert refused(d, identity="robot1", tls_cert=str(tmp_path / "rogue.pem"),
+                       tls_key=str(tmp_path / "rogue.key"))
+        assert not refused(d, identity="robot1")
+    finally:
+        assert d.stop() == 0
+
+
+def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
+        free_port: int, tmp_path: Path) -> None:
+    d = deploy(tmp_path, free_port, ["robot1", "robot2"], ["edge1"])
+    edge = robot = None
+    try:
+        monitor = open_session(d.settings("monitor"))
+        edge = Proc(script("zoffload-edge") + d.args("edge1"), tmp_path / "edge.log")
+        wait_token(monitor, KEYS.edge_alive("edge1"), 60)
+        status = EdgeStatus(monitor)
+        robot = Proc(script("zoffload-robot") + d.args("robot1") + ["--max-scans", "30", "--out",
+                                                                     str(tmp_path / "robot")],
+                     tmp_path / "robot.log")
+        assert robot.wait(120) == 0, robot.text()
+        metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+        assert metrics["balanced"] and metrics["balance"]["acked"] >= 28  # TLS + ACL: the path works
+
+        # robot1's identity, in a session of its own: nothing it forges reaches anyone
+        attacker = open_session(d.settings("robot1"))
+        victim = open_session(d.settings("robot2"))
+        got: list[bytes] = []
+        victim.declare_subscriber(KEYS.scan_ack("robot2"), lambda s: got.append(s.payload.to_bytes()))
+        # (a session sees its own puts locally: the eavesdropper is a session of its own)
+        spy = open_session(d.settings("robot1"))
+        stolen: list[str] = []
+        spy.declare_subscriber("zoffload/data/**", lambda s: stolen.append(str(s.key_expr)))
+        token = attacker.liveliness().declare_token(KEYS.edge_alive("edge9"))
+        before = metrics["balance"]["published"]
+        wait_for(lambda: status.values.get("samples") == before, 10, "the edge to count robot1's scans")
+        scan2 = wire.Scan(robot="robot2", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
+                          voxel_max=0.07, max_range=40.0, n_raw=10, points=np.zeros((10, 3), np.float32))
+        for seq in range(20):
+            attacker.put(KEYS.scan("robot2"), wire.encode(scan2))
+            attacker.put(KEYS.scan_ack("robot2"), forged_ack("robot2", seq, 1.0))
+            attacker.put(KEYS.edge_status("edge1"), b"forged")
+        # a genuine robot2 scan in a fresh session shows the path is open for robot2 itself
+        victim.put(KEYS.scan("robot2"), wire.encode(scan2))
+        wait_for(lambda: len(got) == 1, 20, "the edge's answer to robot2's own scan")
+        time.sleep(1.5)  # two more edge status periods
+        assert len(got) == 1 and wire.decode(got[0], expect=wire.ScanAck).edge == "edge1"
+        assert status.values["samples"] == before + 1  # only robot2's own scan reached the edge
+        edges = [str(r.ok.key_expr) for r in victim.liveliness().get(KEYS.any_edge_alive(), timeout=3)
+                 if r.ok is not None]
+        assert edges == [KEYS.edge_alive("edge1")]  # the forged edge token was not forwarded
+        assert stolen == []  # robot1 cannot even listen to other robots' traffic
+        replies = list(attacker.get(KEYS.map("robot2"), timeout=3))
+        assert not [r for r in replies if r.ok is not None]
+        token.undeclare()
+        for s in (attacker, spy, victim, monitor):
+            s.close()
+    finally:
+        for p in (robot, edge):
+            if p is not None:
+                p.sigint()
+        assert d.stop() == 0
+
+
+def test_forged_edge_token_and_acks_book_nothing_without_an_edge(free_port: int, tmp_path: Path) -> None:
+    """The audit's attack: a fake edge token and acks for every scan (echoing what it overhears).
+    Without TLS and the ACL the robot booked 50 of 50 scans as acked with no edge running."""
+    d = deploy(tmp_path, free_port, ["robot1", "robot2"], ["edge1"])
+    robot = None
+    sessions: list[zenoh.Session] = []
+    stop_blind = threading.Event()
+    try:
+        attacker = open_session(d.settings("robot1"))
+        sessions.append(attacker)
+        token = attacker.liveliness().declare_token(KEYS.edge_alive("edge1"))
+        echoed = threading.Event()
+
+        def echo(sample: zenoh.Sample) -> None:  # would answer every scan it overhears
+            scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
+            attacker.put(KEYS.scan_ack(scan.robot), forged_ack(scan.robot, scan.seq, scan.send_stamp))
+            echoed.set()
+
+        attacker.declare_subscriber(KEYS.all_scans(), echo)
+
+        def blind() -> None:  # and acks guessed seqs blindly
+            seq = 0
+            while not stop_blind.is_set():
+                attacker.put(KEYS.scan_ack("robot2"), forged_ack("robot2", seq % 60, time.monotonic()))
+                seq += 1
+                time.sleep(0.01)
+
+        blinder = threading.Thread(target=blind, daemon=True)
+        blinder.start()
+        monitor = open_session(d.settings("monitor"))
+        sessions.append(monitor)
+        watch = StatusWatcher(monitor, KEYS, "robot2")
+        robot = Proc(script("zoffload-robot") + d.args("robot2") + ["--max-scans", "50", "--wait-edge", "2",
+                                                                     "--out", str(tmp_path / "robot")],
+                     tmp_path / "robot.log")
+        assert robot.wait(120) == 0, robot.text()
+        metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+        b = metrics["balance"]
+        assert b["produced"] == 50 and b["acked"] == 0 and b["published"] == 0
+        assert metrics["dropped_source"].get("edge_absent") == 50
+        assert not echoed.is_set()
+        assert watch.values.get("edges", 0) == 0
+        token.undeclare()
+    finally:
+        # the blind sender stops before its session closes; every session closes, also after a
+        # failed assertion (an open session's callback thread would keep pytest from exiting)
+        stop_blind.set()
+        if "blinder" in locals():
+            blinder.join(5)
+        for session in sessions:
+            session.close()
+        if robot is not None:
+            robot.sigint()
+        assert d.stop() == 0
+
+
+def test_user_password_binds_to_the_certificate(free_port: int, tmp_path: Path) -> None:
+    d = deploy(tmp_path, free_port, ["robot1", "robot2"], ["edge1"], passwords=True)
+    try:
+        pw = {n: str(d.certs / f"{n}.password") for n in ("robot1", "robot2")}
+        assert not refused(d, identity="robot1", user="robot1", password_file=pw["robot1"])
+        assert refused(d, identity="robot1")  # no credentials
+        wrong = tmp_path / "wrong"
+        wrong.write_text("nope\n")
+        assert refused(d, identity="robot1", user="robot1", password_file=str(wrong))
+        # robot2's valid login on robot1's certificate connects, but the ACL subject wants both to match
+        monitor = open_session(d.settings("monitor", user="monitor",
+                                          password_file=str(d.certs / "monitor.password")))
+        seen: list[str] = []
+        monitor.declare_subscriber("zoffload/status/**", lambda s: seen.append(str(s.key_expr)))
+        mixed = open_session(d.settings("robot1", user="robot2", password_file=pw["robot2"]))
+        good = open_session(d.settings("robot1", user="robot1", password_file=pw["robot1"]))
+        time.sleep(0.5)
+        for _ in range(5):
+            mixed.put(KEYS.robot_status("robot1"), b"mixed")
+            good.put(KEYS.robot_status("robot1"), b"good")
+        wait_for(lambda: len(seen) >= 5, 10, "robot1's status with its own login")
+        time.sleep(0.5)
+        assert len(seen) == 5
+        for s in (mixed, good, monitor):
+            s.close()
+    finally:
+        assert d.stop() == 0

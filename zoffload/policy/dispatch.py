@@ -1,0 +1,323 @@
+"""``dispatch``: a work-conserving dispatcher of camera frames over two servers working in
+parallel, the robot's detector and the edge.
+
+Each frame goes to the side expected to finish it soonest given what that side is already doing:
+
+* **local**: the detector's current frame ends after its service time (a moving average of the
+  measured ones) less what it has already spent; the new frame starts then, or later if the
+  robot's CPU budget says so (below), and takes one service time.
+* **edge**: the edge path (sender, link, edge queue, edge detector, answer) is one pipeline with a
+  bottleneck time per frame, ``max(edge service time, bytes / delivered rate)`` (the delivered rate:
+  the bytes the edge answered per second while frames were queued behind each other), and a base
+  latency ``r0``: that bottleneck time plus the rest of the path, the shortest recent send-to-answer
+  time less the bottleneck's share then. The frames in flight are laid out on that pipeline after
+  the last answer, oldest first (one overdue is assumed to take as long again as it is late
+  already); a new frame comes one bottleneck time after the last of them, and never sooner than
+  ``r0`` from now.
+
+Fresh frames, not queues: the edge path holds as many frames as keep its bottleneck busy for a
+base latency, ``ceil(r0 / bottleneck time)``, plus ``queue_frames`` waiting (at most ``window``),
+not as many as it takes (a fixed ratio fills the link's buffers, and its frames arrive late); the
+local detector takes a frame only if it would start it within ``slack`` camera periods (a later,
+fresher frame would be finished just as soon). A frame that no side takes, or that no side
+finishes within ``max_age`` of its capture, is skipped (its own bucket). A frame that would replace
+one already waiting in a side's one-slot queue counts against that side (one of the two is lost).
+
+``local_bias`` (one camera period, 40 ms) is how much sooner the local side must finish to be
+chosen: on the tuning half of the images NanoDet-m on a fresh frame scores what PicoDet-S scores
+one frame late (78.3 vs 78.2 AP50), and PicoDet-S is the stronger model in general (COCO mAP 30.6
+against 20.6). Each edge frame carries the recent share of frames the edge lost (timeouts,
+overflow) times ``max_age``: the offloading thesis' failure was an edge whose few returning frames
+looked fast.
+
+The robot's CPU is a server too: under a CPU quota the detector is paced (``local_ready_at``) to
+use at most what the rest of the process leaves of ``cpu_share`` × quota (process CPU time minus
+the detector's own), instead of starving the camera and the frame sender. Even so, a quarter-core
+robot's detection (20 ms of CPU against a 25 ms quota per 100 ms period) stalls the whole process,
+sender included, for most of a period: the local side takes a frame only if that stall (its wall
+time less its CPU time) fits in the work the edge path's bottleneck already has queued, or the edge
+cannot take the frame in time anyway. A slow local measurement drifts back towards the detector's
+CPU time while it is idle (half-life ``recover``), so one slow spell does not idle it for good.
+
+Losses: an edge frame unanswered within the reply timeout blocks the edge until an answer comes and
+shrinks the window of frames in flight (``max_in_flight`` at most, also shrunk when the edge's queue
+overflows, grown back by answers). The edge's estimate is kept fresh by *copies*: when no frame went
+to the edge for ``refresh_period``, a frame detected locally is also sent to the edge and only its
+answer time is used, so no frame is sacrificed to a probe.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+from zoffload.policy.offload import BOTH, EDGE, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
+
+
+class Ewma:
+    """Exponentially weighted moving average (NaN until the first finite value)."""
+
+    def __init__(self, alpha: float) -> None:
+        self.alpha = alpha
+        self.value = NAN
+
+    def add(self, x: float | None) -> None:
+        if x is None or not math.isfinite(x):
+            return
+        self.value = x if math.isnan(self.value) else self.value + self.alpha * (x - self.value)
+
+
+class Recent:
+    """The last ``n`` samples no older than ``horizon`` seconds (the newest always kept)."""
+
+    def __init__(self, n: int, horizon: float) -> None:
+        self.samples: deque[tuple[float, float]] = deque(maxlen=n)
+        self.horizon = horizon
+
+    def add(self, t: float, x: float) -> None:
+        if math.isfinite(x):
+            self.samples.append((t, x))
+
+    def values(self, now: float) -> list[float]:
+        while len(self.samples) > 1 and now - self.samples[0][0] > self.horizon:
+            self.samples.popleft()
+        return [x for _, x in self.samples]
+
+    def min(self, now: float) -> float:
+        xs = self.values(now)
+        return min(xs) if xs else NAN
+
+    def median(self, now: float) -> float:
+        xs = sorted(self.values(now))
+        return xs[len(xs) // 2] if xs else NAN
+
+
+class CpuMeter:
+    """CPU used by the robot process apart from its local detector, in cores, over ``span`` s."""
+
+    def __init__(self, span: float = 1.0) -> None:
+        self.span = span
+        self.points: deque[tuple[float, float]] = deque()  # (wall time, CPU time of the others)
+
+    def add(self, now: float, cpu_time: float, local_cpu_time: float) -> None:
+        if math.isfinite(cpu_time) and math.isfinite(local_cpu_time):
+            self.points.append((now, cpu_time - local_cpu_time))
+            while len(self.points) > 2 and now - self.points[1][0] >= self.span:
+                self.points.popleft()
+
+    def others(self) -> float:
+        if len(self.points) < 2 or self.points[-1][0] - self.points[0][0] < 0.2:
+            return NAN
+        (t0, c0), (t1, c1) = self.points[0], self.points[-1]
+        return max(0.0, (c1 - c0) / (t1 - t0))
+
+
+@dataclass
+class Dispatcher(Strategy):
+    max_age: float = 0.6  # s from capture: a later result is not worth the work
+    local_bias: float = 0.04  # s the local side must finish sooner to be chosen (a lighter model)
+    refresh_period: float = 1.0  # s without an edge frame before a copy measures the edge
+    cpu_share: float = 1.0  # of the CPU quota the process may fill
+    max_in_flight: int = 4  # unanswered edge frames (and copies) at most
+    slack: float = 1.5  # camera periods a frame may wait for the local detector to start it
+    recover: float = 1.0  # s: half-life of a slow local measurement while the detector is idle
+    queue_frames: int = 1  # edge frames that may wait at the edge path's bottleneck
+    name: str = "dispatch"
+    local_service: Ewma = field(default_factory=lambda: Ewma(0.2))
+    local_cpu: Ewma = field(default_factory=lambda: Ewma(0.2))
+    edge_service: Ewma = field(default_factory=lambda: Ewma(0.2))
+    frame_bytes: Ewma = field(default_factory=lambda: Ewma(0.2))
+    losses: Ewma = field(default_factory=lambda: Ewma(0.2))  # share of edge frames never detected
+    fixed_latency: Recent = field(default_factory=lambda: Recent(32, 10.0))  # r0 minus the bottleneck
+    delivered: Recent = field(default_factory=lambda: Recent(8, 3.0))
+    cpu: CpuMeter = field(default_factory=CpuMeter)
+    window: float = 4.0
+    blocked: bool = False  # an edge frame went unanswered: no edge frames until an answer
+    estimates: tuple[float, float] = (NAN, NAN)  # the last decision's finish times, local and edge
+    frame_period: Ewma = field(default_factory=lambda: Ewma(0.1))  # between camera frames
+    _last_capture: float = NAN
+    _last_edge_send: float = -math.inf
+    _last_answer: float = -math.inf
+    _local_seen: float = -math.inf  # when the local detector last finished a frame
+    _local_fresh: bool = False
+    _local_results: int = 0
+
+    def __post_init__(self) -> None:
+        self.window = float(self.max_in_flight)
+
+    # Estimates
+    def bottleneck(self, nbytes: float, now: float) -> float:
+        """Seconds the edge path's bottleneck spends on a frame of ``nbytes``: the edge detector's
+        service time, or the bytes at the delivered rate, whichever is longer (NaN: not known)."""
+        rate = self.delivered.median(now)
+        link = nbytes / rate if math.isfinite(rate) and rate > 0 and math.isfinite(nbytes) else NAN
+        parts = [x for x in (self.edge_service.value, link) if math.isfinite(x)]
+        return max(parts) if parts else NAN
+
+    def r0(self, now: float) -> float:
+        """Send-to-answer time of a frame that queues behind none: the shortest recent one less the
+        bottleneck's time then, plus the bottleneck's time now (a link that slows down shows at once,
+        a frame that waited in a queue is not mistaken for the base)."""
+        fixed = self.fixed_latency.min(now)
+        now_part = self.bottleneck(self.frame_bytes.value, now)
+        return fixed + (now_part if math.isfinite(now_part) else 0.0)
+
+    def interval(self, nbytes: float, now: float) -> float:
+        """Spacing of frames through the edge path; before any delivered rate is known, one frame
+        per base latency (the safe guess: no frame queues behind another)."""
+        if math.isfinite(self.delivered.median(now)):
+            return self.bottleneck(nbytes, now)
+        return self.r0(now)
+
+    def depth(self, now: float) -> int:
+        """Edge frames to keep in flight: enough to keep the bottleneck busy for a base latency
+        (``r0`` / its time per frame, rounded up), plus ``queue_frames`` waiting for it; at most the
+        window."""
+        r0, per_frame = self.r0(now), self.bottleneck(self.frame_bytes.value, now)
+        busy = math.ceil(r0 / per_frame) if math.isfinite(r0) and per_frame > 0 else 1
+        return max(1, min(int(self.window), busy + self.queue_frames))
+
+    def edge_finish(self, st: OffloadState) -> tuple[float, float]:
+        """When a frame sent now would be answered (inf when the edge was never measured), and how
+        long the edge path's bottleneck stays busy with the frames already sent."""
+        r0 = self.r0(st.now)
+        if not math.isfinite(r0):
+            return math.inf, 0.0
+        default_bytes = self.frame_bytes.value
+        done = self._last_answer  # the bottleneck served that one last
+        for sent, nbytes in st.edge_sends:
+            expected = max(sent + r0, done + self.interval(nbytes if math.isfinite(nbytes) else default_bytes,
+                                                           st.now))
+            if expected < st.now:  # overdue: assume it takes as long again as it is late already
+                expected = 2 * st.now - expected
+            done = expected
+        # The bottleneck is done with the last frame sent a base latency less its own time before
+        # that frame's answer
+        per_frame = self.bottleneck(default_bytes, st.now)
+        ahead = max(0.0, done - r0 + (per_frame if math.isfinite(per_frame) else 0.0) - st.now)
+        if st.send_waiting:  # the new frame takes the place of the one waiting for the link
+            return done, ahead
+        return max(st.now + r0, done + self.interval(default_bytes, st.now)), ahead
+
+    def local_time(self, now: float) -> float:
+        """The local detector's service time, as measured, drifting back towards its CPU time (half
+        of the difference every ``recover`` seconds) while it does not run: a slow spell (the start,
+        a busy moment) must not keep it idle for the rest of the run."""
+        wall, cpu = self.local_service.value, self.local_cpu.value
+        if not all(map(math.isfinite, (wall, cpu, self._local_seen))) or wall <= cpu:
+            return wall
+        return cpu + (wall - cpu) * 0.5 ** (max(0.0, now - self._local_seen) / self.recover)
+
+    def stall(self, now: float) -> float:
+        """How long a local detection stops the robot process beyond its own CPU time: under a CPU
+        quota the detector spends its wall time mostly waiting for the next quota period, and every
+        thread of the process (the camera, the frame sender) waits with it."""
+        wall, cpu = self.local_time(now), self.local_cpu.value
+        return max(0.0, wall - cpu) if math.isfinite(wall) and math.isfinite(cpu) else 0.0
+
+    def local_finish(self, st: OffloadState) -> tuple[float, float]:
+        """When a frame handed to the local detector now would be done, and when it would start."""
+        service = self.local_time(st.now)
+        if math.isnan(service):
+            return math.inf, math.inf
+        start = st.now
+        if st.local_busy:
+            start += max(service - st.local_busy_for, 0.1 * service)
+        start = max(start, self.local_ready_at)
+        return start + service, start
+
+    def pace(self, st: OffloadState) -> float:
+        """When the local detector may start its next frame within the CPU budget."""
+        self.cpu.add(st.now, st.cpu_time, st.local_cpu_time)
+        cost, others = self.local_cpu.value, self.cpu.others()
+        if not (math.isfinite(st.cpu_quota) and math.isfinite(cost) and math.isfinite(others)):
+            return -math.inf
+        room = max(self.cpu_share * st.cpu_quota - others, 0.02 * st.cpu_quota)
+        return st.local_last_start + cost / room
+
+    # Decision
+    def choose(self, st: OffloadState) -> str:
+        if self._local_fresh:
+            self._local_seen, self._local_fresh = st.now, False
+        self.local_ready_at = self.pace(st)
+        if math.isfinite(self._last_capture) and 0 < st.capture - self._last_capture < 1.0:
+            self.frame_period.add(st.capture - self._last_capture)
+        self._last_capture = st.capture
+        edge_ok = st.edge_available and not self.blocked
+        # Measure each side once before comparing them
+        if edge_ok and not self.fixed_latency.samples and not st.edge_sends:
+            return self._to_edge(st)
+        if math.isnan(self.local_service.value) and not st.local_busy:
+            return LOCAL
+        deadline = (st.capture if math.isfinite(st.capture) else st.now) + self.max_age
+        period = self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
+        # A side that would not start on this frame within a camera period would finish a later,
+        # fresher frame just as soon: it does not take this one (just in time, not queued)
+        options = []  # (kills a waiting frame, score, side)
+        f_edge, ahead = self.edge_finish(st) if edge_ok else (math.inf, 0.0)
+        # The local detector's stall must not starve an edge path that takes frames in time: it
+        # runs when the bottleneck has work queued for longer than the stall (give or take half a
+        # camera period, the soonest the next frame could need the sender), or the edge is no use
+        local_fits = f_edge > deadline or self.stall(st.now) <= ahead + 0.5 * period
+        f_local, start = self.local_finish(st)
+        if f_local <= deadline and start < st.now + self.slack * period and local_fits:
+            options.append((st.local_waiting, f_local + self.local_bias, LOCAL))
+        if len(st.edge_sends) >= self.depth(st.now):
+            f_edge = math.inf
+        if f_edge <= deadline:
+            # A frame the edge loses is worth nothing: each loss weighs as a whole max_age
+            loss = self.losses.value if math.isfinite(self.losses.value) else 0.0
+            options.append((st.send_waiting, f_edge + loss * self.max_age, EDGE))
+        self.estimates = (f_local, f_edge)
+        if not options:
+            return SKIP
+        side = min(options)[2]
+        if side == EDGE:
+            return self._to_edge(st)
+        if (st.edge_available and not st.edge_sends and not st.send_waiting
+                and st.now - self._last_edge_send >= self.refresh_period):
+            self._last_edge_send = st.now
+            return BOTH
+        return LOCAL
+
+    def _to_edge(self, st: OffloadState) -> str:
+        self._last_edge_send = st.now
+        return EDGE
+
+    # Observations
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
+        if self._local_results:  # the first one runs while the whole robot is starting: not a measure
+            self.local_service.add(service if service is not None else rtt)
+        self._local_results += 1
+        self.local_cpu.add(cpu)
+        self._local_fresh = True  # timed at the next decision (the hooks carry no clock)
+
+    def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:
+        if reply is None:
+            return
+        self._answered(reply)
+        self.losses.add(0.0)
+        self.window = min(float(self.max_in_flight), self.window + 0.25)
+
+    def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
+        self._answered(reply)
+        self.losses.add(1.0)
+        if reply.status == "dropped":  # the edge's queue overflowed: fewer frames in flight
+            self.window = max(1.0, self.window - 1.0)
+
+    def on_edge_timeout(self, waited: float) -> None:
+        """An edge frame (or copy) unanswered for the reply timeout: no edge frames until the edge
+        answers again (copies find out when), and fewer in flight after."""
+        self.blocked = True
+        self.losses.add(1.0)
+        self.window = max(1.0, self.window - 1.0)
+
+    def _answered(self, reply: EdgeReply) -> None:
+        self.blocked = False
+        self._last_answer = reply.result
+        self.delivered.add(reply.result, reply.delivery_rate)
+        self.edge_service.add(reply.service)
+        self.frame_bytes.add(reply.bytes)
+        own = self.bottleneck(reply.bytes, reply.result)
+        self.fixed_latency.add(reply.result, reply.result - reply.sent - (own if math.isfinite(own) else 0.0))

@@ -1,0 +1,141 @@
+"""The Zenoh router's access control for a zoffload deployment, generated from the key layout.
+
+Identities are certificate common names (mTLS): one per robot, per edge, per read-only monitor.
+Default deny; what each may do, with flows seen from the router (ingress: from that client,
+egress: to it) and every rule key including the message's key (Zenoh checks inclusion):
+
+* robot R: put its own ``data/R/scan``, ``data/R/frame``, ``status/R``; hold ``alive/robot/R``;
+  subscribe to and receive only its own answers (``data/R/scan_ack``, ``data/R/detections``);
+  query only its own ``ctrl/R/map`` and ``ctrl/R/ping`` and receive their replies; watch
+  ``alive/edge/*``.
+* edge E: subscribe to and receive every robot's scans and frames; put acks and detections for
+  any robot and its own ``status/edge/E``; declare and answer the ``ctrl/*/map|ping`` queryables;
+  hold ``alive/edge/E``; watch ``alive/robot/*``.
+* monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
+  ``alive/**``; never put.
+* everyone: the router may tell a client which subscriptions and queryables exist under the
+  namespace (egress ``declare_subscriber``/``declare_queryable``: metadata, never data). Without it
+  a ``declare_publisher`` sees no subscriber and drops every put inside the client, silently.
+
+Zenoh has no templating by common name, so each robot and edge gets its own rules. With
+``usernames``, a subject must also log in with the user of its own name (Zenoh's usrpwd), binding
+the password to the certificate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from zoffload.protocol.keys import Keys, check_id
+
+_PLACEHOLDER = "zoffload-acl-any"
+
+
+def _wild(key_of: Callable[[str], str]) -> str:
+    """A per-id key with its id chunk as ``*`` (keys.py stays the only place that formats keys)."""
+    parts = key_of(_PLACEHOLDER).split("/")
+    i = len(parts) - 1 - parts[::-1].index(_PLACEHOLDER)
+    parts[i] = "*"
+    return "/".join(parts)
+
+
+def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
+    return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages),
+            "key_exprs": list(keys)}
+
+
+def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
+    answers = [k.scan_ack(r), k.detections(r)]
+    ctrl = [k.map(r), k.ping(r)]
+    return [
+        _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
+        _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], answers),
+        _rule(f"robot_{r}_rx", "egress", ["put"], answers),
+        _rule(f"robot_{r}_token", "ingress", ["liveliness_token"], [k.robot_alive(r)]),
+        _rule(f"robot_{r}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+              [k.any_edge_alive()]),
+        _rule(f"robot_{r}_edges", "egress", ["liveliness_token"], [k.any_edge_alive()]),
+        _rule(f"robot_{r}_get", "ingress", ["query"], ctrl),
+        _rule(f"robot_{r}_replies", "egress", ["reply"], ctrl),
+    ]
+
+
+def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
+    inputs = [k.all_scans(), k.all_frames()]
+    ctrl = [k.all_maps(), k.all_pings()]
+    return [
+        _rule(f"edge_{e}_sub", "ingress", ["declare_subscriber"], inputs),
+        _rule(f"edge_{e}_rx", "egress", ["put"], inputs),
+        _rule(f"edge_{e}_put", "ingress", ["put"],
+              [_wild(k.scan_ack), _wild(k.detections), k.edge_status(e)]),
+        _rule(f"edge_{e}_queryable", "ingress", ["declare_queryable"], ctrl),
+        _rule(f"edge_{e}_queries", "egress", ["query"], ctrl),
+        _rule(f"edge_{e}_reply", "ingress", ["reply"], ctrl),
+        _rule(f"edge_{e}_token", "ingress", ["liveliness_token"], [k.edge_alive(e)]),
+        _rule(f"edge_{e}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+              [k.any_robot_alive()]),
+        _rule(f"edge_{e}_robots", "egress", ["liveliness_token"], [k.any_robot_alive()]),
+    ]
+
+
+def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
+    status = f"{k.ns}/status/**"
+    alive = f"{k.ns}/alive/**"
+    return [
+        _rule(f"monitor_{m}_sub", "ingress", ["declare_subscriber"], [status]),
+        _rule(f"monitor_{m}_rx", "egress", ["put"], [status]),
+        _rule(f"monitor_{m}_get", "ingress", ["query"], [k.all_maps()]),
+        _rule(f"monitor_{m}_replies", "egress", ["reply"], [k.all_maps()]),
+        _rule(f"monitor_{m}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+              [alive]),
+        _rule(f"monitor_{m}_tokens", "egress", ["liveliness_token"], [alive]),
+    ]
+
+
+def access_control(keys: Keys, robots: Sequence[str], edges: Sequence[str], monitors: Sequence[str] = (),
+                   usernames: bool = False) -> dict[str, Any]:
+    """The ``access_control`` section of the router's config for these identities."""
+    names = [*robots, *edges, *monitors]
+    for name in names:
+        check_id(name, "identity")
+    if len(set(names)) != len(names):
+        raise ValueError(f"identities must be distinct: {names}")
+    rules: list[dict[str, Any]] = [
+        _rule("declarations_out", "egress", ["declare_subscriber", "declare_queryable"], [f"{keys.ns}/**"])]
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for kind, ids, make in (("robot", robots, _robot_rules), ("edge", edges, _edge_rules),
+                            ("monitor", monitors, _monitor_rules)):
+        for name in ids:
+            own = make(keys, name)
+            rules += own
+            subject: dict[str, Any] = {"id": f"{kind}_{name}", "cert_common_names": [name]}
+            if usernames:
+                subject["usernames"] = [name]
+            subjects.append(subject)
+            policies.append({"id": f"{kind}_{name}", "subjects": [subject["id"]],
+                             "rules": [r["id"] for r in own] + ["declarations_out"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def router_config(listen: Sequence[str], ca: str, cert: str, key: str, acl: dict[str, Any],
+                  lease_ms: int = 2000, users_file: str | None = None) -> dict[str, Any]:
+    """A router that speaks TLS only, requires client certificates and enforces ``acl``.
+
+    ``lease_ms`` is the router's own lease: clients notice a dead router within it (each node
+    announces its own lease, so robots and edges set theirs too)."""
+    link: dict[str, Any] = {
+        "protocols": ["tls"],  # no plain tcp listener: unauthenticated clients cannot even connect
+        "tls": {"root_ca_certificate": ca, "listen_certificate": cert, "listen_private_key": key,
+                "connect_certificate": cert, "connect_private_key": key, "enable_mtls": True,
+                "verify_name_on_connect": True},
+        "tx": {"lease": lease_ms, "keep_alive": 4},
+    }
+    transport: dict[str, Any] = {"link": link}
+    if users_file:
+        transport["auth"] = {"usrpwd": {"dictionary_file": users_file}}
+    return {"mode": "router", "listen": {"endpoints": list(listen)}, "connect": {"endpoints": []},
+            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+            "transport": transport, "access_control": acl}
