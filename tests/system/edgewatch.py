@@ -31,9 +31,10 @@ class EdgeWatch:
         wait_for(lambda: self.value(name) >= at_least, timeout, f"edge status {name} >= {at_least}")
 
     def settle(self, timeout: float = 30.0) -> None:
-        """Until the edge's status reports every sample it received as accounted for."""
+        """Until the edge's status reports every sample it received as accounted for (a scan
+        naming another edge is counted as ``other_edge``: a mutated ``Scan.edge`` does that)."""
         wait_for(lambda: self.value("samples") == self.value("received") + self.value("drops")
-                 and self.statuses > 0, timeout, "the edge to account for every sample")
+                 + self.value("other_edge") and self.statuses > 0, timeout, "the edge to account for every sample")
 
     def alive(self) -> bool:
         return self.proc.is_running() and self.proc.status() != psutil.STATUS_ZOMBIE

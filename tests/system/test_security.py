@@ -162,7 +162,7 @@ def test_forged_edge_token_and_acks_book_nothing_without_an_edge(free_port: int,
         metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
         b = metrics["balance"]
         assert b["produced"] == 50 and b["acked"] == 0 and b["published"] == 0
-        assert metrics["dropped_source"].get("edge_absent") == 50
+        assert b["local"] == 50  # no edge ever mapped it: every scan registered on the robot
         assert not echoed.is_set()
         assert watch.values.get("edges", 0) == 0
         token.undeclare()

@@ -1,4 +1,4 @@
-"""The lab's commands: ``zoffload demo``, ``experiment scan|detect|detect-sweep``, ``report``,
+"""The lab's commands: ``zoffload demo``, ``experiment scan|detect|detect-sweep|fleet``, ``report``,
 ``train-policy`` and ``link`` (the emulator). Each runs product code from ``zoffload.lab``.
 """
 
@@ -50,6 +50,30 @@ def _run_experiment(a: argparse.Namespace) -> int:
     except TraceError as exc:
         raise ConfigError(str(exc)) from exc
     print(summary_line(row))
+    return ExitCode.OK
+
+
+def _run_fleet(a: argparse.Namespace) -> int:
+    from zoffload.lab.fleet_experiment import FleetExperiment, run_fleet_experiment
+    from zoffload.lab.fleet_report import ROWS
+    from zoffload.lab.fleet_scenario import ScenarioError
+
+    try:
+        result = run_fleet_experiment(FleetExperiment(
+            out=a.out, robots=a.robots, edges=a.edges, events=a.events or "", traces=tuple(a.trace or ()),
+            scans=a.scans, max_scans=a.max_scans, rate_hz=a.rate, repeat=a.repeat, baseline=a.baseline,
+            seed=a.seed, lease_ms=a.lease_ms, edge_workers=a.edge_workers, edge_flags=a.edge_flags,
+            robot_flags=a.robot_flags))
+    except ScenarioError as exc:
+        raise ConfigError(str(exc)) from exc
+    labels = {key: label for label, key, _ in ROWS}
+    for key in ("acked", "local", "lost", "ate_rmse_mean", "max_pose_gap_scans", "failover_s_max"):
+        fig = result["aggregate"].get(key)
+        if fig:
+            print(f"{labels[key]}: {fig['mean']:.3f}" + (f" ± {fig['sd']:.3f}" if fig.get("sd") else ""))
+    if result["ate_ratio"] is not None:
+        print(f"ATE ratio scripted / baseline: {result['ate_ratio']:.2f}x")
+    print(f"report written to {a.out}/report.md")
     return ExitCode.OK
 
 
@@ -211,6 +235,40 @@ def add_experiment(sub: Any) -> None:
                     "(S@jpeg: strategy S with JPEG frames)")
     _detect_arguments(sw, sweep=True)
     sw.set_defaults(func=_run_detect_sweep)
+    fl = exs.add_parser("fleet",
+                        help="N robots x M edges around a router, scripted edge kills/drains/restarts")
+    fl.add_argument("--out", required=True, help="results folder (run1 ... runN, baseline/, report.md)")
+    fl.add_argument("--robots", type=int, default=3, help="robot processes robot1 ... (default 3)")
+    fl.add_argument("--edges", type=int, default=2, help="edge processes edge1 ... (default 2)")
+    fl.add_argument("--events", default="",
+                    help="edge events, ACTION:EDGE@SECONDS after every robot is up, comma-separated; kill = "
+                    "SIGKILL, drain = SIGTERM, restart = start again with the same id (e.g. "
+                    "kill:edge1@5,restart:edge1@8,drain:edge2@12)")
+    fl.add_argument("--trace", action="append", metavar="[ROBOT=]TRACE",
+                    help="link emulator between a robot and the router: TRACE for every robot or ROBOT=TRACE "
+                    "for one (repeatable; shipped name or CSV; default: direct loopback)")
+    fl.add_argument("--scans", default="sim",
+                    help="'sim' (default: a scene seed per robot, ground truth) or a folder of scans (e.g. "
+                    "KITTI-360; reference: KISS-ICP on every raw scan)")
+    fl.add_argument("--max-scans", type=int, default=300,
+                    help="scans per robot (default 300 = 30 s at 10 Hz)")
+    fl.add_argument("--rate", type=float, help="sensor rate in Hz (default: the source's)")
+    fl.add_argument("--repeat", type=int, default=1,
+                    help="runs, into OUT/run1 ... runN; complete runs are kept, so the command resumes")
+    fl.add_argument("--baseline", action="store_true",
+                    help="also the same runs without events (OUT/baseline), for the ATE ratio")
+    fl.add_argument("--seed", type=int, default=0, help="first run's seed (scene seeds, link jitter)")
+    fl.add_argument("--lease-ms", type=int, default=1000,
+                    help="Zenoh lease every process announces (default 1000: a silent edge is gone "
+                    "within 1 s)")
+    fl.add_argument("--edge-workers", type=int, default=None,
+                    help="mapper threads per edge (default: one per core)")
+    fl.add_argument("--edge-flags", default="",
+                    help="extra flags for every edge, e.g. '--fleet.checkpoint-every 5'")
+    fl.add_argument("--robot-flags", default="",
+                    help="extra flags for every robot, e.g. '--fleet.no-attach'")
+    fl.add_argument("--log-level", default="WARNING")
+    fl.set_defaults(func=_run_fleet)
 
 
 def add_report(sub: Any) -> None:

@@ -3,7 +3,22 @@
 Inputs:  ``<ns>/data/*/frame`` (wire.Frame).
 Outputs: ``<ns>/data/<robot>/detections`` (wire.Detections, one per frame: also for frames it
          could not decode or had to drop, so no robot waits for an answer that will not come;
-         robots not admitted get an ``error`` answer saying so, rate-limited).
+         robots not admitted get an ``error`` answer saying so, rate-limited); status values
+         (``status()``): the counters below, ``detector.free`` (the share of the last
+         ``BUSY_WINDOW`` seconds the inference thread was idle: robots pick edges with room by it,
+         robot/edgechoice.py), ``detector.queued``, ``detector.infer_ms``.
+
+In a fleet every edge's detector hears every frame (the router fans them out). A frame names the
+edge asked to detect it (``Frame.edge``; "" = any edge that hears it): a frame for another edge
+is not ours, counted ``other_edge`` (not a drop: no answer, no admission, no per-robot state).
+That is decided first, from the field read straight out of the msgpack bytes (``frame_edge``:
+no copy, no pixel touched), before admission and before the frame is decoded.
+
+Counters: every sample is counted once as ``samples`` and ends in exactly one of a drop
+(``detector.drops``: bad key, refused, malformed, foreign, a callback exception), ``other_edge`` or
+``received``; every received frame ends in exactly one of ``served``, ``errors``, ``dropped``
+(queue overflow), ``evicted`` (its robot evicted), or is still ``queued`` / in a pass
+(``balance()``). Frames still queued when the service stops are not answered.
 
 The Zenoh callback only decodes, checks sizes and queues; one inference thread serves all robots.
 Sizes are checked before any pixel is decoded: the declared width x height against the pixel cap,
@@ -29,12 +44,14 @@ import zenoh
 from zoffload.detect.detector import Detections, Detector
 from zoffload.edge.admission import Admission
 from zoffload.protocol import wire
-from zoffload.protocol.intake import decode_from_robot, robot_in_key
+from zoffload.protocol.intake import robot_in_key
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.detection")
+
+BUSY_WINDOW = 5.0  # seconds over which the inference thread's busy share is measured
 
 # Start-of-frame markers (baseline, extended, progressive, lossless; Huffman and arithmetic)
 _SOF = frozenset((0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF))
@@ -102,6 +119,91 @@ def decode_image(frame: wire.Frame, limits: wire.Limits = wire.DEFAULT_LIMITS) -
     return img
 
 
+def frame_edge(data: bytes | memoryview) -> str | None:
+    """The ``edge`` field of an encoded frame, read from the msgpack bytes without decoding (or
+    copying) anything else; None when the field is absent (a version-1 sender) or the bytes are
+    not a well-formed message map (the full decode judges those). Bounded: at most ``_PEEK_ITEMS``
+    values are stepped over."""
+    b = memoryview(data).cast("B") if not isinstance(data, bytes) else data
+    try:
+        n, i = _container(b, 0, map_only=True)
+        for _ in range(n):
+            key_start = i
+            i = _skip(b, i)
+            if bytes(b[key_start:i]) == _EDGE_KEY:
+                value_start = i
+                i = _skip(b, i)
+                head = b[value_start]
+                if 0xA0 <= head <= 0xBF:
+                    return bytes(b[value_start + 1:i]).decode()
+                if head == 0xD9:
+                    return bytes(b[value_start + 2:i]).decode()
+                return None
+            i = _skip(b, i)
+    except (IndexError, ValueError, _PeekError):
+        return None
+    return None
+
+
+class _PeekError(Exception):
+    pass
+
+
+_EDGE_KEY = b"\xa4edge"
+_PEEK_ITEMS = 256
+_FIXED = {0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8, 0xD0: 1,
+          0xD1: 2, 0xD2: 4, 0xD3: 8, 0xD4: 2, 0xD5: 3, 0xD6: 5, 0xD7: 9, 0xD8: 17}  # bytes after the head
+_SIZED = {0xC4: 1, 0xC5: 2, 0xC6: 4, 0xD9: 1, 0xDA: 2, 0xDB: 4}  # bin/str: bytes of the length
+_CONTAINERS = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}  # (length bytes, values per item)
+
+
+def _container(b: bytes | memoryview, i: int, map_only: bool = False) -> tuple[int, int]:
+    """(values inside, index after the header) of the map (or array) at ``i``."""
+    head = b[i]
+    if 0x80 <= head <= 0x8F:
+        return 2 * (head & 0x0F), i + 1
+    if head in (0xDE, 0xDF):
+        width = _CONTAINERS[head][0]
+        return 2 * int.from_bytes(b[i + 1:i + 1 + width], "big"), i + 1 + width
+    if not map_only:
+        if 0x90 <= head <= 0x9F:
+            return head & 0x0F, i + 1
+        if head in (0xDC, 0xDD):
+            width = _CONTAINERS[head][0]
+            return int.from_bytes(b[i + 1:i + 1 + width], "big"), i + 1 + width
+    raise _PeekError("not a map")
+
+
+def _skip(b: bytes | memoryview, i: int) -> int:
+    """The index after the msgpack value at ``i`` (nested containers stepped through, at most
+    ``_PEEK_ITEMS`` values in all)."""
+    todo, budget = 1, _PEEK_ITEMS
+    while todo:
+        todo -= 1
+        budget -= 1
+        if budget < 0:
+            raise _PeekError("too many values")
+        head = b[i]
+        if head <= 0x7F or head >= 0xE0 or head in (0xC2, 0xC3, 0xC0):
+            i += 1
+        elif 0xA0 <= head <= 0xBF:
+            i += 1 + (head & 0x1F)
+        elif head in _FIXED:
+            i += 1 + _FIXED[head]
+        elif head in _SIZED:
+            width = _SIZED[head]
+            i += 1 + width + int.from_bytes(b[i + 1:i + 1 + width], "big")
+        elif head in (0xC7, 0xC8, 0xC9):  # ext: length, type byte, data
+            width = {0xC7: 1, 0xC8: 2, 0xC9: 4}[head]
+            i += 2 + width + int.from_bytes(b[i + 1:i + 1 + width], "big")
+        else:
+            n, i = _container(b, i)
+            todo += n
+        if i > len(b):
+            raise _PeekError("truncated")
+    return i
+
+
 @dataclass
 class _Pending:
     frame: wire.Frame
@@ -124,6 +226,12 @@ class DetectorService:
         self.drops = Drops(log)
         self.infer_times: deque[float] = deque(maxlen=100)
         self._pending: dict[str, deque[_Pending]] = {}
+        self._in_pass = 0  # frames taken by the inference thread, not yet answered
+        # (start, end) of the inference thread's recent work, monotonic; bounded by the window
+        # (a pass is at least one inference) and by maxlen whatever the clock does
+        self._busy: deque[tuple[float, float]] = deque(maxlen=10_000)
+        self._busy_since: float | None = None  # the current inference's start
+        self._started = time.monotonic()
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._cond = threading.Condition()  # pending, publishers and counters
         self._stop = threading.Event()
@@ -163,18 +271,31 @@ class DetectorService:
         with self._cond:
             self.counters[what] += 1
 
-    # Zenoh callback: decode, check, queue
+    # Zenoh callback: ours?, decode, check, queue
     def _on_frame(self, sample: zenoh.Sample) -> None:
         arrival = time.monotonic()
         self._count("samples")
         robot = robot_in_key(sample, self.keys, self.drops, "frame")
         if robot is None:
             return
-        if not self.admission.admit(robot, arrival):
-            self._refuse(sample, robot)
+        data = sample.payload.to_bytes()
+        edge = frame_edge(data)
+        if edge and edge != self.edge_id:  # another edge's frame: nothing else is looked at
+            self._count("other_edge")
             return
-        frame = decode_from_robot(sample, wire.Frame, robot, self.drops, "frame", self.limits)
-        if frame is None:
+        if not self.admission.admit(robot, arrival):
+            self._refuse(data, robot)
+            return
+        try:
+            frame = wire.decode(data, expect=wire.Frame, limits=self.limits)
+        except wire.WireError as exc:
+            self.drops.drop("malformed", f"frame on {str(sample.key_expr)[:100]}: {exc}")
+            return
+        if frame.robot != robot:
+            self.drops.drop("foreign", f"frame: robot {frame.robot!r} in the payload, {robot!r} in the key")
+            return
+        if frame.edge and frame.edge != self.edge_id:  # the peek could not read it; the decode did
+            self._count("other_edge")
             return
         self._count("received")
         p = _Pending(frame, arrival)
@@ -195,13 +316,13 @@ class DetectorService:
         if dropped is not None:
             self._reply(dropped, "dropped", detail="edge detector overloaded")
 
-    def _refuse(self, sample: zenoh.Sample, robot: str) -> None:
+    def _refuse(self, data: bytes, robot: str) -> None:
         why = self.admission.why_refused(robot)
         self.drops.drop("refused", why)
         if self._session is None or not self.admission.answer_refusal():
             return
         try:
-            frame = wire.decode(sample.payload.to_bytes(), expect=wire.Frame, limits=self.limits)
+            frame = wire.decode(data, expect=wire.Frame, limits=self.limits)
         except wire.WireError:
             return
         if frame.robot == robot:  # Detections has no "refused" status: an error that says so
@@ -219,6 +340,7 @@ class DetectorService:
             taken = items[: self.batch]
             for p in taken:
                 self._pending[p.frame.robot].remove(p)
+            self._in_pass += len(taken)
             return taken
 
     def _work(self) -> None:
@@ -229,18 +351,40 @@ class DetectorService:
 
     def _serve(self, p: _Pending, batch: int) -> None:
         start = time.monotonic()
+        with self._cond:
+            self._busy_since = start
         try:
             img = decode_image(p.frame, self.limits)
             det = self.detector.detect(img)
         except Exception as exc:  # a bad frame is answered and counted, the service carries on
-            self._count("errors")
+            self._served("errors", start)
             log.warning("robot %s frame %d: %s", p.frame.robot, p.frame.seq, exc)
             self._reply(p, "error", detail=str(exc)[:200], queue_time=start - p.arrival)
             return
-        self._count("served")
+        self._served("served", start)
         self.infer_times.append(self.detector.last_infer_time)
         self._reply(p, "ok", queue_time=start - p.arrival, infer_time=time.monotonic() - start,
                     batch=batch, det=det)
+
+    def _served(self, what: str, start: float) -> None:
+        end = time.monotonic()
+        with self._cond:
+            self.counters[what] += 1
+            self._in_pass -= 1
+            self._busy_since = None
+            self._busy.append((start, end))
+            while self._busy and self._busy[0][1] < end - BUSY_WINDOW:
+                self._busy.popleft()
+
+    def busy_share(self, now: float | None = None) -> float:
+        """The share of the last ``BUSY_WINDOW`` seconds (less, just after start) the inference
+        thread spent on frames."""
+        now = time.monotonic() if now is None else now
+        since = max(now - BUSY_WINDOW, self._started)
+        with self._cond:
+            spans = [*self._busy, *([(self._busy_since, now)] if self._busy_since is not None else [])]
+        busy = sum(max(0.0, min(end, now) - max(start, since)) for start, end in spans)
+        return min(1.0, busy / (now - since)) if now > since else 0.0
 
     def _answer(self, frame: wire.Frame, status: str, detail: str = "", queue_time: float = float("nan"),
                 infer_time: float = float("nan"), batch: int = 0,
@@ -277,15 +421,35 @@ class DetectorService:
         """Answer the robot's waiting frames as dropped and forget it."""
         with self._cond:
             waiting = list(self._pending.pop(robot, ()))
+            self.counters["evicted"] += len(waiting)
         for p in waiting:
             self._reply(p, "dropped", detail="robot evicted from the edge")
         with self._cond:
             pub = self._pubs.pop(robot, None)
         undeclare(pub)
 
+    def balance(self) -> dict[str, int]:
+        """The counters of the invariant (module docstring), with what is waiting now."""
+        with self._cond:
+            out = {k: int(self.counters[k]) for k in ("samples", "other_edge", "received", "served", "errors",
+                                                      "dropped", "evicted")}
+            out["queued"] = sum(len(q) for q in self._pending.values())
+            out["in_pass"] = self._in_pass
+        out["drops"] = sum(self.drops.snapshot().values())
+        return out
+
+    def balanced(self) -> bool:
+        b = self.balance()
+        return (b["samples"] == b["drops"] + b["other_edge"] + b["received"]
+                and b["received"] == sum(b[k] for k in ("served", "errors", "dropped", "evicted", "queued",
+                                                         "in_pass")))
+
     def status(self) -> dict[str, float]:
+        free = 1.0 - self.busy_share()
         with self._cond:
             values = {f"detector.{k}": float(v) for k, v in self.counters.items()}
+            values["detector.queued"] = float(sum(len(q) for q in self._pending.values()))
+        values["detector.free"] = free
         drops = self.drops.snapshot()
         values.update({f"detector.drop.{k}": float(v) for k, v in drops.items()})
         values["detector.drops"] = float(sum(drops.values()))

@@ -3,9 +3,11 @@ one ack per scan.
 
 Inputs:  ``<ns>/data/*/scan`` (wire.Scan).
 Outputs: ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck, one per scan, also for scans it had to
-         drop or could not register; ``refused`` for robots not admitted, rate-limited).
+         drop or could not register; ``refused`` for robots not admitted, rate-limited);
+         ``<ns>/data/<robot>/checkpoint`` (wire.Checkpoint, to attached robots).
 Queries: ``<ns>/ctrl/<robot>/map`` (wire.MapReply: the robot's registered map and the poses in
-         memory; one reply built at a time, others answered "busy").
+         memory; one reply built at a time, others answered "busy");
+         ``<ns>/ctrl/<robot>/attach/<edge>`` (wire.Attach → wire.AttachReply).
 On eviction and stop: with a ``map_dir``, the robot's map, trajectory and counters (edge/export.py).
 
 The Zenoh callback only stamps, checks and queues; registration runs on a fixed pool of worker
@@ -15,12 +17,23 @@ how many robots there are. A robot is held by at most one worker at a time: its 
 registered in order, never concurrently. Each robot keeps at most ``queue`` waiting scans; the
 oldest is acked ``dropped`` when a newer one comes.
 
-Every sample is counted once: ``samples`` = ``received`` + the drops by reason (``bad_key``,
-``refused``, ``malformed``, ``foreign``, ``callback_error``: runtime/drops.py).
+Fleet (edge/fleet.py holds the decisions): a robot attaches with an epoch and maybe a checkpoint;
+its mapper continues the checkpoint's trajectory (applied by the worker before its next scan, so a
+mapper is only ever touched by the worker holding the robot) and it gets a checkpoint after its
+first registered scan under that epoch and then every ``checkpoint_every`` scans. Scans naming
+another edge are only counted (``other_edge``: read from the payload without decoding it);
+scans under an epoch not attached here are refused. Draining and shedding ask the robot's worker
+for a final checkpoint, taken after its next registered scan, or at once if the robot is idle.
+
+Every sample is counted once: ``samples`` = ``received`` + ``other_edge`` + the drops by reason
+(``bad_key``, ``refused``, ``malformed``, ``foreign``, ``callback_error``, ``stale_epoch``,
+``attach_first``, ``shed``: runtime/drops.py). Attach queries are counted apart (``attaches``,
+``attach_refused``; a malformed one is a drop of the service's ``attach_drops``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import threading
@@ -35,10 +48,11 @@ import zenoh
 
 from zoffload.edge.admission import Admission
 from zoffload.edge.export import RobotFiles
+from zoffload.edge.fleet import MAP, OTHER, Fleet, check_attach, peek_route
 from zoffload.edge.recipe import Spill
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
-from zoffload.protocol.intake import decode_from_robot, robot_in_key
+from zoffload.protocol.intake import robot_in_key
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
@@ -64,6 +78,17 @@ class Mapper(Protocol):
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
 
 
+class FleetMapper(Mapper, Protocol):
+    """A mapper that continues trajectories and hands out checkpoints (``recipe.BoundedMapper``);
+    a stand-in without these methods maps attached robots without checkpoints."""
+
+    def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
+                      local_poses: np.ndarray) -> bool: ...
+
+    def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
+                   final: bool = False) -> wire.Checkpoint | None: ...
+
+
 class MapperFactory(Protocol):
     """Makes a robot's mapper from its first scan: ``recipe.MapperRecipe``, or a stand-in."""
 
@@ -77,6 +102,15 @@ class _Queued:
     scan: wire.Scan
     arrival: float  # edge monotonic clock
     interarrival: float
+
+
+@dataclass(frozen=True)
+class _Continue:
+    """What an attach asks the robot's mapper to continue from."""
+
+    checkpoint: wire.Checkpoint | None
+    local_seqs: np.ndarray
+    local_poses: np.ndarray
 
 
 @dataclass
@@ -93,6 +127,13 @@ class RobotSession:
     counters: Counter[str] = field(default_factory=Counter)
     scheduled: bool = False
     closed: bool = False
+    # Fleet: set under the lock by attaches, drain and shedding; used by the worker holding it
+    pending: _Continue | None = None
+    final_pending: bool = False
+    checkpoint_epoch: int = 0  # the epoch of its last checkpoint (0: none yet)
+    since_checkpoint: int = 0
+    last_stamp: float = 0.0  # capture stamp of its last registered scan
+    cp_pub: zenoh.Publisher | None = None
 
 
 class MappingService:
@@ -104,7 +145,8 @@ class MappingService:
     def __init__(self, keys: Keys, make_mapper: MapperFactory | None, queue: int = 2,
                  map_dir: Path | None = None, map_format: str = "ply", edge_id: str = "",
                  workers: int | None = None, admission: Admission | None = None,
-                 limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
+                 limits: wire.Limits = wire.DEFAULT_LIMITS, fleet: Fleet | None = None,
+                 checkpoint_every: int = 10, checkpoint_resolution: float | None = None) -> None:
         self.keys = keys
         self.make_mapper = make_mapper
         self.queue_len = queue
@@ -113,6 +155,11 @@ class MappingService:
         self.edge_id = edge_id
         self.admission = admission or Admission()
         self.limits = limits
+        self.fleet = fleet or Fleet(edge_id, capacity=self.admission.max_robots)
+        self.checkpoint_every = checkpoint_every
+        self.checkpoint_resolution = checkpoint_resolution
+        self.attach_drops = Drops(log)
+        self._busy = 0.0  # seconds the workers spent registering and checkpointing
         self.robots: dict[str, RobotSession] = {}
         self.counters: Counter[str] = Counter()
         self.drops = Drops(log)
@@ -126,6 +173,7 @@ class MappingService:
         self._session: zenoh.Session | None = None
         self._sub: zenoh.Subscriber[None] | None = None
         self._map_q: zenoh.Queryable[None] | None = None
+        self._attach_q: zenoh.Queryable[None] | None = None
 
     def start(self, session: zenoh.Session) -> None:
         if self.make_mapper is not None:
@@ -136,12 +184,15 @@ class MappingService:
         self._sub = session.declare_subscriber(self.keys.all_scans(), self.drops.guard(self._on_scan, "scan"))
         self._map_q = session.declare_queryable(self.keys.all_maps(),
                                                 self.drops.guard(self._on_map_query, "map query"))
+        if self.edge_id:
+            self._attach_q = session.declare_queryable(self.keys.all_attaches(self.edge_id),
+                                                       self.attach_drops.guard(self._on_attach, "attach"))
 
     def stop(self) -> None:
         # No new scans first: one queued after the workers stop would never be acked. The map
         # queryable and the ack publishers go with the session, so maps are served to the end.
-        undeclare(self._sub)
-        self._sub = None
+        undeclare(self._sub, self._attach_q)
+        self._sub = self._attach_q = None
         self._stop.set()
         with self._lock:
             self._lock.notify_all()
@@ -154,9 +205,13 @@ class MappingService:
         log.info("mapping stopped: %s, drops %s", dict(self.counters), self.drops.snapshot())
 
     def status(self) -> dict[str, float]:
+        now = time.monotonic()
         with self._lock:
             values = {k: float(v) for k, v in self.counters.items()}
             robots = list(self.robots.values())
+            values.update(self.fleet.status(now))
+            values["busy_share"] = self.fleet.busy_share(len(self._workers))
+        values.update({f"attach.drop.{k}": float(v) for k, v in self.attach_drops.snapshot().items()})
         drops = self.drops.snapshot()
         values.update({f"drop.{k}": float(v) for k, v in drops.items()})
         values["drops"] = float(sum(drops.values()))
@@ -179,10 +234,23 @@ class MappingService:
         robot = robot_in_key(sample, self.keys, self.drops, "scan")
         if robot is None:
             return
+        payload = sample.payload.to_bytes()
+        # Whose scan: another edge's costs a counter, a refused one no per-robot state
+        peeked = peek_route(payload)
+        if peeked is not None:
+            with self._lock:
+                route = self.fleet.route(robot, peeked[0], peeked[1], arrival)
+                if route.action == OTHER:
+                    self.counters["other_edge"] += 1
+            if route.action == OTHER:
+                return
+            if route.action != MAP:
+                self._refuse(payload, robot, route.reason, route.detail)
+                return
         if not self.admission.admit(robot, arrival):
-            self._refuse(sample, robot)
+            self._refuse(payload, robot, "refused", self.admission.why_refused(robot))
             return
-        scan = decode_from_robot(sample, wire.Scan, robot, self.drops, "scan", self.limits)
+        scan = self._decode_scan(payload, robot, str(sample.key_expr))
         if scan is None:
             return
         if scan.coding != "f32" and scan.n_points > self.limits.max_points:  # before it waits in a queue
@@ -208,14 +276,26 @@ class MappingService:
         for q in overflow:
             self._ack(rs, q, status="dropped", detail="edge mapper overloaded")
 
-    def _refuse(self, sample: zenoh.Sample, robot: str) -> None:
-        """A scan from a robot not admitted: counted; answered while the refusal budget allows."""
-        why = self.admission.why_refused(robot)
-        self.drops.drop("refused", why)
+    def _decode_scan(self, payload: bytes, robot: str, key: str) -> wire.Scan | None:
+        """``robot``'s scan, or None after counting a ``malformed`` or ``foreign`` drop."""
+        try:
+            scan = wire.decode(payload, expect=wire.Scan, limits=self.limits)
+        except wire.WireError as exc:
+            self.drops.drop("malformed", f"scan on {key[:100]}: {exc}")
+            return None
+        if scan.robot != robot:
+            self.drops.drop("foreign", f"scan: robot {scan.robot!r} in the payload, {robot!r} in the key")
+            return None
+        return scan
+
+    def _refuse(self, payload: bytes, robot: str, reason: str, why: str) -> None:
+        """A scan refused (robot not admitted, not attached, shed): counted; answered while the
+        admission's refusal budget allows."""
+        self.drops.drop(reason, f"robot {robot}: {why}")
         if self._session is None or not self.admission.answer_refusal():
             return
         try:
-            scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan, limits=self.limits)
+            scan = wire.decode(payload, expect=wire.Scan, limits=self.limits)
         except wire.WireError:
             return  # already counted as refused; nothing to answer
         if scan.robot != robot:
@@ -249,10 +329,16 @@ class MappingService:
                     return
                 rs = self._ready.popleft()
                 item = rs.queue.popleft() if rs.queue else None
+            start = time.perf_counter()
             if item is not None:
                 self._register(rs, item)
             with self._lock:
-                if rs.queue and not rs.closed:
+                final, rs.final_pending = rs.final_pending, False
+            if final:
+                self._send_final(rs)
+            with self._lock:
+                self._busy += time.perf_counter() - start
+                if (rs.queue or rs.final_pending) and not rs.closed:
                     self._ready.append(rs)  # its next scan waits behind the other robots' turns
                     self._lock.notify()
                     continue
@@ -270,6 +356,7 @@ class MappingService:
         try:
             if rs.mapper is None:
                 rs.mapper = self.make_mapper(scan, rs.files.spill)
+            self._continue(rs)
             # Decodes a coded payload (WireError if it is corrupt); the per-point times, when the
             # scan carries them, deskew it if the mapper was made to
             points, times = scan.cloud_and_times(self.limits)
@@ -285,7 +372,146 @@ class MappingService:
             self._ack(rs, item, status="error", detail=str(exc)[:200])
             return
         self._count(rs, "registered")
+        rs.last_stamp = scan.capture_stamp
         self._ack(rs, item, status="ok", queue_time=start - item.arrival, reg=reg)
+        if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending:
+            rs.since_checkpoint += 1
+            if rs.checkpoint_epoch != scan.epoch or rs.since_checkpoint >= self.checkpoint_every:
+                self._send_checkpoint(rs, scan.epoch)
+
+    # Fleet: attaches, checkpoints, drain and shedding
+    def _on_attach(self, query: zenoh.Query) -> None:
+        robot = self.keys.robot_of(str(query.key_expr))
+        if robot is None or query.payload is None:
+            self.attach_drops.drop("malformed", f"attach on {str(query.key_expr)[:100]!r}: no robot/payload")
+            return
+        try:
+            attach = wire.decode(query.payload.to_bytes(), expect=wire.Attach, limits=self.limits)
+        except wire.WireError as exc:
+            self.attach_drops.drop("malformed", f"attach of {robot}: {exc}")
+            return
+        if attach.robot != robot:
+            self.attach_drops.drop("malformed", f"attach: robot {attach.robot!r} in the payload, {robot!r} "
+                                                "in the key")
+            return
+        checkpoint, detail = check_attach(attach, robot, self.limits)
+        now = time.monotonic()
+        with self._lock:
+            rs = self.robots.get(robot)
+            detail = detail or self.fleet.decide(robot, attach.epoch, len(self.robots), rs is not None, now)
+            if not detail and not self.admission.admit(robot, now):
+                detail = f"not admitted: {self.admission.why_refused(robot)}"
+            if not detail:
+                self.fleet.attach(robot, attach.epoch, now)
+                rs = rs or self._new_robot(robot)
+                rs.pending = _Continue(checkpoint, attach.local_seqs, attach.local_poses)
+                rs.final_pending = False
+            self.counters["attach_refused" if detail else "attaches"] += 1
+            robots, capacity = len(self.robots), self.fleet.effective_capacity(now)
+        log.info("attach of %s (epoch %d, checkpoint %s, %d local poses): %s", robot, attach.epoch,
+                 f"seq {checkpoint.seq}" if checkpoint else "none", len(attach.local_seqs),
+                 detail or "accepted")
+        reply = wire.AttachReply(robot=robot, edge=self.edge_id, epoch=attach.epoch, accepted=not detail,
+                                 detail=detail, robots=robots, capacity=capacity)
+        query.reply(query.key_expr, wire.encode(reply))
+
+    def _continue(self, rs: RobotSession) -> None:
+        """Apply the robot's latest attach to its mapper (the worker holding the robot)."""
+        with self._lock:
+            pending, rs.pending = rs.pending, None
+        if pending is None or rs.mapper is None or not hasattr(rs.mapper, "continue_from"):
+            return
+        mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
+        if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses):
+            log.info("robot %s continues from its checkpoint of scan %d", rs.robot,
+                     pending.checkpoint.seq if pending.checkpoint else -1)
+
+    def _send_checkpoint(self, rs: RobotSession, epoch: int, final: bool = False) -> bool:
+        """Take and publish the robot's checkpoint (the worker holding the robot)."""
+        if rs.mapper is None or not hasattr(rs.mapper, "checkpoint") or self._session is None:
+            return False
+        mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
+        t0 = time.perf_counter()
+        cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, self.checkpoint_resolution,
+                               final)
+        if cp is None:
+            return False
+        data = wire.encode(cp)
+        try:
+            if final:  # the one the robot must not miss: wait for room rather than drop it
+                self._session.put(self.keys.checkpoint(rs.robot), data,
+                                  congestion_control=zenoh.CongestionControl.BLOCK)
+            else:
+                if rs.cp_pub is None:
+                    rs.cp_pub = self._session.declare_publisher(
+                        self.keys.checkpoint(rs.robot), congestion_control=zenoh.CongestionControl.DROP)
+                rs.cp_pub.put(data)
+        except Exception as exc:  # the session is closing
+            log.debug("checkpoint not published: %s", exc)
+            return False
+        rs.checkpoint_epoch, rs.since_checkpoint = epoch, 0
+        with self._lock:
+            self.counters["final_checkpoints" if final else "checkpoints"] += 1
+            self.counters["checkpoint_bytes"] = len(data)
+            self.counters["checkpoint_us"] = int((time.perf_counter() - t0) * 1e6)
+        return True
+
+    def _send_final(self, rs: RobotSession) -> None:
+        """The robot's final checkpoint (drain, shed): after its latest scan, or its attach's
+        checkpoint handed back when it registered none here."""
+        with self._lock:
+            entry = self.fleet.attached.get(rs.robot)
+        if entry is None:
+            return
+        if rs.mapper is not None:
+            self._continue(rs)
+            self._send_checkpoint(rs, entry.epoch, final=True)
+        elif rs.pending is not None and rs.pending.checkpoint is not None and self._session is not None:
+            cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch, final=True)
+            self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
+                              congestion_control=zenoh.CongestionControl.BLOCK)
+            self._count(rs, "final_checkpoints")
+        with self._lock:
+            self.fleet.final_sent(rs.robot)
+        log.info("robot %s: final checkpoint sent", rs.robot)
+
+    def _ask_final(self, robot: str) -> None:
+        """Called with the lock held: the robot's worker sends its final checkpoint."""
+        rs = self.robots.get(robot)
+        if rs is None or rs.closed:
+            return
+        rs.final_pending = True
+        if not rs.scheduled:
+            rs.scheduled = True
+            self._ready.append(rs)
+            self._lock.notify()
+
+    def begin_drain(self) -> None:
+        """Draining (SIGTERM): attaches refused, every attached robot owed a final checkpoint."""
+        with self._lock:
+            for robot in self.fleet.begin_drain(time.monotonic()):
+                self._ask_final(robot)
+        log.info("draining: %d attached robots to hand over", len(self.fleet.attached))
+
+    def drained(self, now: float | None = None) -> bool:
+        with self._lock:
+            return self.fleet.drained(time.monotonic() if now is None else now)
+
+    def tick(self, now: float | None = None) -> None:
+        """The server's housekeeping (about 1 Hz): the load window, shedding, shed robots' sessions."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self.fleet.sample(now, self._busy, self.counters["dropped"])
+            shed = self.fleet.to_shed(now, len(self._workers))
+            if shed is not None:
+                self.counters["shed"] += 1
+                self._ask_final(shed)
+            gone = self.fleet.shed_gone(now)
+        if shed is not None:
+            log.warning("over capacity (busy %.0f %%, scans dropped): shedding robot %s",
+                        100 * self.fleet.busy_share(len(self._workers)), shed)
+        for robot in gone:
+            self.evict(robot)
 
     def _count(self, rs: RobotSession, what: str) -> None:
         with self._lock:
@@ -310,6 +536,7 @@ class MappingService:
     def evict(self, robot: str) -> None:
         """Drop the robot's state, its map exported first; a scan it sends later starts anew."""
         with self._lock:
+            self.fleet.forget(robot)
             rs = self.robots.pop(robot, None)
             if rs is None:
                 return
@@ -324,7 +551,7 @@ class MappingService:
         rs.queue.clear()
         if self.map_dir:
             self._export(rs)
-        undeclare(rs.ack_pub)
+        undeclare(rs.ack_pub, rs.cp_pub)
         with self._lock:
             self.counters["evicted"] += 1
         log.info("robot %s evicted after %d scans", rs.robot, rs.counters["received"])

@@ -18,17 +18,22 @@ nothing useful (its voxel would be 100 m) even though it survives them (checked 
   that, so trimming is occasional). Older poses are handed to ``spill`` (the mapping service
   writes them to ``map_dir`` and merges them into the exported trajectory) or, without one, only
   counted. Map replies carry the poses in memory; their ``scans`` counts every registered scan.
+
+In a fleet, the mapper also hands out its state as a checkpoint (``checkpoint``: coarse local map,
+pose, motion; mapping/checkpoint.py) and continues a robot's trajectory from one
+(``continue_from``: the odometry seeded, the robot's own poses appended to the trajectory).
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from zoffload.mapping import voxel, voxelset
+from zoffload.mapping.checkpoint import take_checkpoint
 from zoffload.mapping.mapper import Registration, RobotMapper, load_kiss_icp, mapper_voxel_size
 from zoffload.protocol import wire
 
@@ -66,7 +71,7 @@ class BoundedMapper:
 
     @property
     def scans(self) -> int:
-        return self.trimmed + len(self.inner.seqs)
+        return self.inner.registered
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         if len(points) and max(float(points.max()), -float(points.min())) > self.max_range:
@@ -94,6 +99,20 @@ class BoundedMapper:
 
     def map_cloud(self) -> np.ndarray:
         return self.inner.map_cloud()
+
+    def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
+                      local_poses: np.ndarray) -> bool:
+        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses)
+        self._trim()
+        return seeded
+
+    def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
+                   final: bool = False) -> wire.Checkpoint | None:
+        """The odometry's state after its last scan; None before it has one."""
+        if self.inner.last_seq is None:
+            return None
+        cp = take_checkpoint(self.inner.odometry, robot, edge, epoch, self.inner.last_seq, stamp, resolution)
+        return replace(cp, final=True) if final else cp
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         return self.inner.trajectory()

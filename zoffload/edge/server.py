@@ -18,13 +18,22 @@ reassembled, unless the config file or ``--cfg`` sets that key.
 
 Lifecycle as in uvicorn's Server: ``startup`` (session, ping, status publisher, services, then the
 token), ``main_loop`` (status until stopped), ``shutdown`` (services in reverse, then the session).
+
+Fleet (edge/fleet.py, fleet_contract.md): the status carries ``capacity``, ``robots`` and
+``draining``. SIGTERM drains (``drain``): the status says so at once, attaches are refused, each
+attached robot gets a final checkpoint, and the edge stops when every one of them has moved to
+another edge or gone quiet, or after ``fleet.drain_timeout``. SIGINT, or a second SIGTERM, stops
+at once (a third signal forces the exit, runtime/lifecycle.py).
 """
 
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
 from pathlib import Path
+from types import FrameType
 
 import zenoh
 
@@ -32,6 +41,7 @@ from zoffload.detect.detector import Detector
 from zoffload.detect.models import ModelError
 from zoffload.edge.admission import Admission
 from zoffload.edge.detection import DetectorService
+from zoffload.edge.fleet import Fleet
 from zoffload.edge.mapping import MappingService
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.edge.ros2 import ros2_service
@@ -48,6 +58,7 @@ log = logging.getLogger("zoffload.edge")
 
 DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_drop"
 DROP_WAIT_US = 50_000
+TICK = 0.1  # seconds between the main loop's looks at a drain (status goes out every status_period)
 
 
 def edge_zenoh(z: ZenohSettings, max_bytes: int | None = None) -> ZenohSettings:
@@ -75,7 +86,10 @@ def admission(settings: EdgeSettings) -> Admission:
 
 # Factories: settings unpacked into each service's own arguments
 def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | None = None) -> MappingService:
-    m = settings.mapper
+    m, f = settings.mapper, settings.fleet
+    admitted = admitted or admission(settings)
+    fleet = Fleet(settings.edge_id, capacity=f.capacity or admitted.max_robots,
+                  require_attach=f.require_attach, shed=f.shed, shed_load=f.shed_load)
     recipe = MapperRecipe(voxel_size=m.voxel_size, min_range=m.min_range, max_range=m.max_range,
                           max_points_per_voxel=m.max_points_per_voxel, deskew=m.deskew,
                           map_resolution=m.map_resolution, map_budget=m.map_budget,
@@ -83,7 +97,8 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
     return MappingService(keys, recipe if m.enabled else None, queue=m.queue,
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,
                           map_format=settings.map_format, edge_id=settings.edge_id, workers=m.workers,
-                          admission=admitted or admission(settings), limits=wire_limits(settings.limits))
+                          admission=admitted, limits=wire_limits(settings.limits), fleet=fleet,
+                          checkpoint_every=f.checkpoint_every, checkpoint_resolution=f.checkpoint_resolution)
 
 
 def detector_service(settings: EdgeSettings, keys: Keys,
@@ -119,9 +134,12 @@ class EdgeServer:
         self._status_pub: zenoh.Publisher | None = None
         self._ping_q: zenoh.Queryable[None] | None = None
         self._token: zenoh.LivelinessToken | None = None
+        self._drain = threading.Event()  # asked for (SIGTERM, ``drain()``)
+        self.drain_started: float | None = None  # monotonic, once the main loop began draining
 
     def serve(self) -> None:
         """Start, publish status until stopped, shut down (also after a failed start)."""
+        self._install_drain()
         try:
             self.startup()
             self.main_loop()
@@ -154,6 +172,43 @@ class EdgeServer:
         query.reply(query.key_expr, wire.encode(wire.Pong(edge=self.settings.edge_id,
                                                           stamp=ping_stamp(query.parameters))))
 
+    # Drain
+    def drain(self) -> None:
+        """Ask for a drain (from any thread or a signal handler); the main loop carries it out."""
+        self._drain.set()
+
+    def _install_drain(self) -> None:
+        """SIGTERM drains; the handler found (the StopSignal's) takes the next signal."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        previous = signal.getsignal(signal.SIGTERM)
+
+        def on_sigterm(signum: int, frame: FrameType | None) -> None:
+            if not self._drain.is_set() and not self.stop.is_set():
+                log.info("SIGTERM received: draining (a second signal stops at once)")
+                self._drain.set()
+            elif callable(previous):
+                previous(signum, frame)
+            else:
+                self.stop.set()
+
+        signal.signal(signal.SIGTERM, on_sigterm)
+
+    def _drain_step(self, now: float) -> None:
+        """Start the drain when asked; stop when it is over."""
+        mapping = self.mapping
+        if self.drain_started is None:
+            self.drain_started = now
+            if mapping is not None:
+                mapping.begin_drain()
+            self._publish_status()  # the robots learn it now, not at the next period
+            return
+        timeout = self.settings.fleet.drain_timeout
+        if mapping is None or mapping.drained(now) or now - self.drain_started >= timeout:
+            log.info("drained after %.1f s%s", now - self.drain_started,
+                     "" if mapping is None or mapping.drained(now) else " (timeout: robots still attached)")
+            self.stop.set()
+
     # Main loop
     def status(self) -> wire.Status:
         values: dict[str, float] = {}
@@ -165,9 +220,22 @@ class EdgeServer:
 
     def main_loop(self) -> None:
         assert self._status_pub is not None, "main_loop() runs after startup()"
-        while not self.stop.wait(self.settings.status_period):
-            self.housekeeping()
-            self._status_pub.put(wire.encode(self.status()))
+        period = self.settings.status_period
+        due = time.monotonic() + period
+        while not self.stop.wait(min(TICK, max(0.0, due - time.monotonic()))):
+            now = time.monotonic()
+            if self._drain.is_set():
+                self._drain_step(now)
+                if self.stop.is_set():
+                    return
+            if now >= due:
+                self.housekeeping(now)
+                self._publish_status()
+                due = now + period
+
+    def _publish_status(self) -> None:
+        assert self._status_pub is not None, "after startup()"
+        self._status_pub.put(wire.encode(self.status()))
 
     def housekeeping(self, now: float | None = None) -> list[str]:
         """Evict the robots idle for longer than the admission's ``idle_timeout`` from every
@@ -176,6 +244,8 @@ class EdgeServer:
         for robot in gone:
             for service in self.services:
                 service.evict(robot)
+        if self.mapping is not None:
+            self.mapping.tick()  # its own clock: a test may pass a future ``now`` to expire robots
         return gone
 
     # Shutdown

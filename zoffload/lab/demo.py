@@ -118,6 +118,12 @@ def _report(out: Path, reply: wire.MapReply | None, is_sim: bool, trace: str | N
     print(f"scans: {b['produced']} produced, {b['published']} sent, {b['acked']} acked, "
           f"{b['lost']} lost, {b['late']} late, {b['edge_dropped']} dropped by the edge, "
           f"{b['dropped_source']} dropped at source (balanced: {robot_metrics['balanced']})")
+    fleet = robot_metrics.get("fleet")
+    if fleet and (b.get("local") or fleet.get("failovers")):
+        local_cpu = (fleet.get("local_cpu_ms_per_scan") or {}).get("median")
+        print(f"local odometry: {b.get('local', 0)} scans registered on the robot while no edge answered "
+              f"({fleet.get('attaches', 0)} attaches, max {fleet.get('max_pose_gap_scans', 0)} scans "
+              f"without a pose" + (f", {local_cpu:.1f} ms CPU per local scan)" if local_cpu else ")"))
     if s["sent"]:
         print(f"points per scan: {s['mean_points_raw']:.0f} raw -> {s['mean_points_sent']:.0f} sent "
               f"({s['mean_kB_sent']:.0f} kB), {s.get('skipped', 0)} scans skipped by the policy")

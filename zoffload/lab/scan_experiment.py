@@ -30,7 +30,7 @@ from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.lab.link.trace import Trace, load_trace
 from zoffload.lab.runner import link_clock_start, run_offload
 from zoffload.robot.scanlog import RECORD_FIELDS
-from zoffload.runtime.config import EdgeSettings, RobotSettings
+from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.sources import open_scan_source
 from zoffload.sources.base import Replay, ScanSource
@@ -233,6 +233,10 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
         scale_policy=exp.policy if exp.policy.startswith("dqn") or exp.policy == "rate" else "fixed",
         out_dir=str(out), wait_edge=30, scan_coding=exp.coding,  # type: ignore[arg-type]
+        # The paper's set-up: one edge, every scan offered to it. With the fleet's attach protocol
+        # a silent link would send the robot to local odometry (scans not offered at all), which
+        # is another experiment (``zoffload experiment fleet``)
+        fleet=RobotFleetSettings(attach=False),
     )
     if exp.voxel_range:
         robot.voxel_range = exp.voxel_range

@@ -3,6 +3,10 @@
 Scans lost on the way (a gap in the sequence numbers) stretch KISS-ICP's constant-velocity
 prediction over the gap; without it, one lost second of a moving robot derails the odometry.
 
+A mapper can continue another's trajectory (``continue_from``): seeded from a checkpoint
+(mapping/checkpoint.py), its poses stay in the checkpoint's frame, and the poses the robot
+estimated itself since then join its trajectory (the next scan's gap counts from the last of them).
+
 KISS-ICP fixes its voxel size at construction and downsamples every frame again internally (at
 0.5x and 1.5x that size). The edge sizes it so the robot's own downsampling never makes the
 mapper's grids finer than the data: ``voxel = max(max_range / 100, 2 * robot voxel_max)``
@@ -12,14 +16,21 @@ mapper's grids finer than the data: ``voxel = max(max_range / 100, 2 * robot vox
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from zoffload.mapping.checkpoint import config_matches, seed
 from zoffload.mapping.se3 import se3_power
 from zoffload.mapping.voxelset import VoxelSet
+
+if TYPE_CHECKING:
+    from zoffload.protocol import wire
+
+log = logging.getLogger("zoffload.mapping")
 
 
 @dataclass(frozen=True)
@@ -95,8 +106,10 @@ class RobotMapper:
         self.voxel_size = voxel_size
         self.max_gap = max_gap  # beyond this many lost scans, constant velocity means nothing
         self.deskew = deskew
-        self.seqs: list[int] = []
+        self.seqs: list[int] = []  # the trajectory: registered scans and the robot's own poses
         self.poses: list[np.ndarray] = []
+        self.last_seq: int | None = None  # the scan the odometry's last pose belongs to
+        self.registered = 0  # scans registered here (the trajectory also holds the robot's poses)
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
@@ -106,7 +119,7 @@ class RobotMapper:
         stamps = deskew_times(times, len(frame)) if self.deskew else np.empty(0)
         # Scans lost on the way: KISS-ICP predicts one scan period of motion, so stretch its
         # constant-velocity model over the gap, and bring it back to one period afterwards.
-        gap = int(seq) - self.seqs[-1] if self.seqs else 1
+        gap = int(seq) - self.last_seq if self.last_seq is not None else 1
         stretch = 1 < gap <= self.max_gap
         if stretch and len(stamps):
             # Deskew with one period of motion (the sweep's), not the stretched prediction
@@ -126,6 +139,8 @@ class RobotMapper:
         self.global_map.add(frame, pose)
         self.seqs.append(int(seq))
         self.poses.append(pose)
+        self.last_seq = int(seq)
+        self.registered += 1
         return Registration(
             pose=pose,
             keypoints=int(len(keypoints)),
@@ -134,6 +149,34 @@ class RobotMapper:
             proc_time=time.perf_counter() - t0,
             icp_time=icp_time,
         )
+
+    def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
+                      local_poses: np.ndarray) -> bool:
+        """Continue a trajectory: the odometry is (re-)seeded from ``checkpoint`` when it is newer
+        than the last scan this mapper knows (the local map replaced by the checkpoint's), then
+        the robot's own poses after that join the trajectory and the last of them becomes the
+        odometry's pose. The global map is kept. Returns whether the odometry was seeded."""
+        seeded = False
+        if checkpoint is not None and (self.last_seq is None or checkpoint.seq > self.last_seq):
+            if not config_matches(self.odometry, checkpoint):
+                log.warning("checkpoint of %s made by a mapper configured otherwise (voxel %.3f m, range "
+                            "%.1f m): seeding anyway", checkpoint.robot, checkpoint.voxel_size,
+                            checkpoint.max_range)
+            if self.last_seq is not None:
+                self.odometry.local_map.clear()
+            seed(self.odometry, checkpoint)
+            self.last_seq = int(checkpoint.seq)
+            seeded = True
+        seqs = np.asarray(local_seqs, np.int64).reshape(-1)
+        poses = np.asarray(local_poses, np.float64).reshape(-1, 4, 4)
+        newer = seqs > (self.last_seq if self.last_seq is not None else -1)
+        for s, p in zip(seqs[newer], poses[newer], strict=True):
+            self.seqs.append(int(s))
+            self.poses.append(p.copy())
+        if newer.any():
+            self.odometry.last_pose = poses[newer][-1].copy()
+            self.last_seq = int(seqs[newer][-1])
+        return seeded
 
     @property
     def map_points(self) -> int:

@@ -13,7 +13,7 @@ detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) che
 message declares before they allocate.
 
 Versions: this build sends version 2 and reads 1 and 2. Version 2 only added fields with defaults
-(the assignment epoch and answering edge, deliberately skipped scans, per-point times) and
+(the assignment epoch and edge, deliberately skipped scans, per-point times) and
 messages (checkpoint, attach, attach reply), so a version-1 sender is still understood.
 """
 
@@ -147,6 +147,7 @@ class Scan(Message):
     skipped: int = _num(0, lo=0, hi=1e6)  # scans deliberately not sent just before this one
     time_span: float = _num(0.0, lo=0.0, hi=10.0)  # seconds the points' times cover; 0 = no times
     times: np.ndarray | None = _array(ArraySpec("<u2", (-1,), cap="max_points"), optional=True)  # f32
+    edge: str = _text("", max_len=ID_MAX)  # the edge the robot is attached to ("": no attach protocol)
 
     def cloud(self, limits: Limits = DEFAULT_LIMITS) -> np.ndarray:
         """The scan's points as float32 (n, 3), decoded if coded; ``WireError`` if it cannot be."""
@@ -217,6 +218,8 @@ class Frame(Message):
     width: int = _num(lo=1, hi=65_535)
     height: int = _num(lo=1, hi=65_535)
     data: np.ndarray = _array(ArraySpec("|u1", (-1,)))
+    # Version 2
+    edge: str = _text("", max_len=ID_MAX)  # the edge asked to detect it ("": any edge that hears it)
 
     def check_size(self, limits: Limits = DEFAULT_LIMITS) -> None:
         """``WireError`` unless the declared size is within the pixel cap and, for raw frames,
@@ -304,6 +307,7 @@ class Checkpoint(Message):
     pose: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # sensor → world after that scan
     delta: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # the last motion per scan period
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))  # coarse local map, world
+    final: bool = False  # the edge is draining: this is its last checkpoint, the robot must move
 
 
 @dataclass(frozen=True)

@@ -122,6 +122,15 @@ class Assignment:
         if edge == self.edge:
             self._drop()
 
+    def no_answer(self, edge: str, now: float, backoff: float) -> None:
+        """The edge did not answer the attach at all (an edge without the attach protocol, or a
+        lost query): the others are asked first, this one again after ``backoff`` seconds."""
+        info = self.edges.get(edge)
+        if info is not None:
+            info.refused_until = now + backoff
+        if edge == self.edge:
+            self._drop()
+
     def give_up(self) -> None:
         """The edge did not answer the attach (or stopped answering scans): move on."""
         if self.edge is not None and self.edge in self.edges:

@@ -1,13 +1,19 @@
 """The robot's camera pipeline: each camera frame is detected on the robot or on the edge.
 
 Inputs:  an image source (``coco-clips``, a folder, a video), ``<ns>/data/<robot>/detections``
-         (wire.Detections), the edges present (the robot server's ``EdgePresence``).
+         (wire.Detections), the edges present (the robot server's ``EdgePresence``) and their
+         status (``<ns>/status/edge/*``: the detector's free share, draining).
 Outputs: ``<ns>/data/<robot>/frame`` (wire.Frame, put by one sender thread that blocks while the
-         link is busy, newest frame waiting); ``<ns>/view/<robot>/preview`` (wire.Preview, a few
-         per second while a viewer subscribes: robot/preview.py); status values (frame counters,
+         link is busy, newest frame waiting; each names the edge asked to detect it, chosen by
+         robot/edgechoice.py among the present edges: sticky, moving when that edge goes, drains or
+         is full; only that edge's answer counts, another's is a counted ``wrong_edge`` drop);
+         ``<ns>/view/<robot>/preview`` (wire.Preview, a few per second while a viewer subscribes:
+         robot/preview.py); status values (frame counters,
          CPU, Mbps, power, ping); results in ``out_dir``: ``frames.csv`` (one row per camera
          frame), ``detections.npz`` (person boxes of every processed frame),
-         ``vision_metrics.json``, ``monitor.csv``.
+         ``vision_metrics.json``, ``monitor.csv``. Only the newest ``keep_frames`` records stay in
+         memory; older ones go to ``frames.csv`` (and a hidden detections file) as the run goes
+         (robot/framelog.py).
 
 Threads: the camera (paces the source, keeps only the newest frame), this pipeline's loop
 (decides and dispatches, never waits on a detector or on the link), the frame sender (one slot),
@@ -36,7 +42,8 @@ from zoffload.detect.detector import Detections
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.robot.frames import FRAME_FIELDS, FallbackRules, FrameBook, RobotView
+from zoffload.robot.edgechoice import EdgeChoice
+from zoffload.robot.frames import FallbackRules, FrameBook, RobotView
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.preview import Offer, PreviewPublisher
 from zoffload.robot.sensor import FrameSource, Reading, SensorThread
@@ -72,6 +79,8 @@ class CameraOptions:
     cpu_quota: float | None = None  # reported in the metrics (applied by the server)
     quota_mode: str | None = None
     preview_period: float = 0.25  # seconds between previews at most (0: no previews)
+    keep_frames: int = 4096  # finished frame records held in memory (robot/framelog.py)
+    out_dir: Path | None = None  # older records retire onto disk here as the run goes
 
 
 class CameraOffloader:
@@ -86,7 +95,8 @@ class CameraOffloader:
         self.keys = keys
         self.opts = options
         self.stop = stop
-        self.book = FrameBook(strategy, rules)
+        self.book = FrameBook(strategy, rules, keep=options.keep_frames, folder=options.out_dir)
+        self.choice = EdgeChoice(options.robot_id)  # the edge each frame goes to
         self.drops = Drops(log)
         self.camera = SensorThread(source, options.fps, "once", options.max_frames, name="camera")
         self._lock = threading.RLock()
@@ -114,6 +124,9 @@ class CameraOffloader:
         presence.subscribe(self._on_edges)
         with self._lock:
             self.book.edge_present = presence.any
+            self.choice.present(presence.edges)
+        self._status_sub = session.declare_subscriber(self.keys.all_edge_status(),
+                                                      self.drops.guard(self._on_edge_status, "edge status"))
         self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id),
                                                    self.drops.guard(self._on_result, "detections"))
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
@@ -142,12 +155,30 @@ class CameraOffloader:
         self._stop_threads()
         if self.preview is not None:
             self.preview.close()
-        undeclare(getattr(self, "_det_sub", None), getattr(self, "_pub", None))
+        undeclare(getattr(self, "_det_sub", None), getattr(self, "_status_sub", None),
+                  getattr(self, "_pub", None))
 
     # Zenoh callback threads
     def _on_edges(self, edge: str, present: bool, edges: frozenset[str]) -> None:
+        now = time.time()
         with self._lock:
-            self.book.edges_changed(bool(edges), time.time())
+            self.choice.present(edges)
+            if not present and edges:  # frames sent to it will not be answered; others stay
+                self.book.edge_gone(edge, now)
+            self.book.edges_changed(bool(edges), now)
+
+    def _on_edge_status(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        except wire.WireError as exc:
+            self.drops.drop("malformed_status", str(exc))
+            return
+        if msg.source != "edge" or msg.id != self.keys.last_chunk(str(sample.key_expr)):
+            self.drops.drop("foreign_status",
+                            f"status of {msg.source} {msg.id!r} on {str(sample.key_expr)[:100]}")
+            return
+        with self._lock:
+            self.choice.status(msg.id, msg.values)
 
     def _on_result(self, sample: zenoh.Sample) -> None:
         now = time.time()
@@ -165,9 +196,11 @@ class CameraOffloader:
         boxes, scores = msg.boxes[keep].copy(), msg.scores[keep].copy()
         with self._lock:
             bucket = self.book.edge_result(msg.seq, msg.status, now, msg.infer_time, msg.queue_time,
-                                           boxes, scores)
-            image = self._edge_images.pop(msg.seq, None)
-        if bucket == "unknown":
+                                           boxes, scores, edge=msg.edge)
+            image = self._edge_images.pop(msg.seq, None) if bucket != "wrong_edge" else None
+        if bucket == "wrong_edge":
+            self.drops.drop("wrong_edge", f"frame {msg.seq} answered by edge {msg.edge!r}, not the one asked")
+        elif bucket == "unknown":
             log.debug("result for frame %d that is not in flight (late or unknown)", msg.seq)
         elif bucket == "edge_done" and image is not None and self.preview is not None:
             self.preview.offer(Offer(msg.seq, now, EDGE, image, boxes, scores))
@@ -215,9 +248,9 @@ class CameraOffloader:
             self._local_cond.notify()
 
     # Edge (one slot: the sender blocks while the link is busy; only the newest frame waits)
-    def _to_edge(self, reading: Reading, probe: bool, copy: bool = False) -> None:
+    def _to_edge(self, reading: Reading, probe: bool, copy: bool = False, edge: str = "") -> None:
         with self._send_cond:
-            self.book.sent(reading.seq, time.time(), probe, copy=copy)
+            self.book.sent(reading.seq, time.time(), probe, copy=copy, edge=edge)
             if self._send_slot is not None:  # the link has not taken the previous one yet
                 self.book.send_replaced(self._send_slot.seq)
                 self._edge_images.pop(self._send_slot.seq, None)
@@ -228,7 +261,7 @@ class CameraOffloader:
                     del self._edge_images[next(iter(self._edge_images))]
             self._send_cond.notify()
 
-    def _encode(self, frame: ImageFrame, seq: int, now: float) -> bytes:
+    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "") -> bytes:
         img = frame.image
         h, w = img.shape[:2]
         if self.opts.encoding == "jpeg":
@@ -241,7 +274,7 @@ class CameraOffloader:
         else:
             data = np.ascontiguousarray(img).reshape(-1)
         return wire.encode(wire.Frame(robot=self.opts.robot_id, seq=seq, send_stamp=now, capture_stamp=now,
-                                      encoding=self.opts.encoding, width=w, height=h, data=data))
+                                      encoding=self.opts.encoding, width=w, height=h, data=data, edge=edge))
 
     def _sender(self) -> None:
         """Encodes and puts edge frames one at a time. The publisher blocks while the link is busy
@@ -254,8 +287,9 @@ class CameraOffloader:
                 reading, self._send_slot = self._send_slot, None
                 if reading is None or not self.book.waiting_to_send(reading.seq):
                     continue  # already booked (lost when the edge went)
+                edge = self.book.edge_of(reading.seq)
             try:
-                data = self._encode(reading.frame, reading.seq, time.time())
+                data = self._encode(reading.frame, reading.seq, time.time(), edge)
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
                     self.book.send_failed(reading.seq)
@@ -272,15 +306,18 @@ class CameraOffloader:
     # Main loop
     def dispatch(self, reading: Reading) -> None:
         with self._lock:
+            now = time.time()
             side, probe = self.book.decide(reading.seq, reading.frame.index, reading.capture_stamp,
-                                           time.time(), self._robot_view())
+                                           now, self._robot_view())
+            # "" only in the instant between the last edge going and the book hearing of it
+            edge = (self.choice.pick(now) or "") if side in (EDGE, BOTH) else ""
             try:
                 if side in (LOCAL, BOTH):
                     self._to_local(reading)
                 if side == BOTH:  # a copy only measures the edge
-                    self._to_edge(reading, False, copy=True)
+                    self._to_edge(reading, False, copy=True, edge=edge)
                 elif side == EDGE:
-                    self._to_edge(reading, probe)
+                    self._to_edge(reading, probe, edge=edge)
             except Exception as exc:  # one bad frame must not end the run
                 self.book.failed(reading.seq)
                 log.error("frame %d: %s", reading.seq, exc)
@@ -350,7 +387,8 @@ class CameraOffloader:
         """Frame counters and the latest monitor readings, for the robot's status message."""
         with self._lock:
             values = {k: float(v) for k, v in self.book.balance().items()}
-            values.update(fallback=float(self.book.fallback), offloaded=float(self.strategy.offloaded))
+            values.update(fallback=float(self.book.fallback), offloaded=float(self.strategy.offloaded),
+                          detector_edge_switches=float(self.choice.switches))
             samples = self._samples()
             if samples:
                 last = samples[-1]
@@ -362,30 +400,18 @@ class CameraOffloader:
     def metrics(self) -> dict[str, Any]:
         with self._lock:
             summary = self.book.summary(self._samples())
+            switches = self.choice.switches
         return {"robot": self.opts.robot_id, "source": self.source.name, "strategy": self.strategy.name,
                 "local_model": self.local.name, "encoding": self.opts.encoding,
                 "cpu_quota": self.opts.cpu_quota, "cpu_quota_applied": self.opts.quota_mode,
-                "power_available": RaplMonitor().available, **summary}
+                "power_available": RaplMonitor().available, "edge_switches": switches, **summary}
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "vision_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
-        with self._lock:
-            recs = [self.book.records[k] for k in sorted(self.book.records)]
-            persons = dict(self.book.persons)
+        with self._lock:  # the pipeline has stopped: nothing changes the records any more
+            self.book.log.write(out_dir, self.camera.period)
             samples = self._samples()
-        with open(out_dir / "frames.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=FRAME_FIELDS, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(recs)
-        seqs = np.array(sorted(persons), np.int64)
-        counts = np.array([len(persons[s][1]) for s in seqs], np.int64)
-        np.savez(out_dir / "detections.npz", seqs=seqs, counts=counts,
-                 boxes=np.concatenate([persons[s][0] for s in seqs]).reshape(-1, 4) if len(seqs)
-                 else np.zeros((0, 4), np.float32),
-                 scores=np.concatenate([persons[s][1] for s in seqs]) if len(seqs)
-                 else np.zeros(0, np.float32),
-                 period=self.camera.period)
         with open(out_dir / "monitor.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=ResourceMonitor.FIELDS)
             w.writeheader()
@@ -410,5 +436,6 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
                           probe_period=p.probe_period, resume_after=p.resume_after)
     options = CameraOptions(robot_id=settings.robot_id, fps=p.fps or source.rate_hz, max_frames=p.max_frames,
                             encoding=p.encoding, jpeg_quality=p.jpeg_quality, wait_edge=settings.wait_edge,
-                            cpu_quota=p.cpu_quota, quota_mode=quota_mode, preview_period=p.preview_period)
+                            cpu_quota=p.cpu_quota, quota_mode=quota_mode, preview_period=p.preview_period,
+                            out_dir=Path(settings.out_dir) if settings.out_dir else None)
     return CameraOffloader(source, detector, strategy, rules, Keys(settings.namespace), options, stop)

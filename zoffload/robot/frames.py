@@ -27,17 +27,19 @@ import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
+from zoffload.robot.framelog import FRAME_FIELDS, FrameLog
+
+__all__ = ["DONE", "DROPPED", "FRAME_FIELDS", "FallbackRules", "FrameBook", "RobotView"]
 
 log = logging.getLogger("zoffload.robot.frames")
 
-FRAME_FIELDS = ["seq", "index", "capture", "side", "probe", "send", "result", "status", "rtt_ms",
-                "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons", "copy",
-                "copy_rtt_ms", "est_local_ms", "est_edge_ms"]
+MAX_FALLBACK_EVENTS = 1000  # fallbacks listed in the summary (all are counted)
 # Final buckets of a camera frame (skipped: no side could finish it while fresh)
 DONE = ("local_done", "edge_done")
 DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "dropped_send", "skipped", "edge_lost",
@@ -69,12 +71,18 @@ class FallbackRules:
 
 
 class FrameBook:
-    def __init__(self, strategy: Strategy, rules: FallbackRules) -> None:
+    """``keep``: finished records held in memory (None: all of them), older ones retire to
+    ``folder`` (robot/framelog.py)."""
+
+    def __init__(self, strategy: Strategy, rules: FallbackRules, keep: int | None = None,
+                 folder: Path | None = None) -> None:
         self.strategy = strategy
         self.rules = rules
         self.counters: Counter[str] = Counter()
-        self.records: dict[int, dict[str, Any]] = {}
-        self.persons: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # person boxes and scores
+        self.log = FrameLog(keep, folder)
+        self.records = self.log.records  # seq -> record (the newest ones)
+        self.persons = self.log.persons  # seq -> person boxes and scores (of those records)
+        self.per_edge: Counter[str] = Counter()  # frames each edge detected
         self.in_flight: dict[int, float] = {}  # seq -> send time
         self.copies: dict[int, float] = {}  # seq -> send time of a copy (the frame is detected locally)
         self.fallback = False
@@ -100,6 +108,7 @@ class FrameBook:
         held or skipped frame is finished here (``dropped_window``, ``skipped``)."""
         r = robot or RobotView()
         self.records[seq] = {"seq": seq, "index": index, "capture": capture, "status": "pending"}
+        self.log.trim(held=self.copies)  # records grow only here: the bound is kept here
         self.counters["frames_in"] += 1
         probe = (self.fallback and self.edge_present and not self.in_flight
                  and now - self._last_probe >= self.rules.probe_period and self.strategy.name != "robot")
@@ -128,14 +137,20 @@ class FrameBook:
             self.finish(seq, "skipped")
         return side, probe
 
-    def sent(self, seq: int, now: float, probe: bool, copy: bool = False) -> None:
-        """The frame (or its copy) is handed to the sender: in flight, its timeout runs from now on."""
+    def sent(self, seq: int, now: float, probe: bool, copy: bool = False, edge: str = "") -> None:
+        """The frame (or its copy) is handed to the sender: in flight, its timeout runs from now on.
+        ``edge``: the edge asked to detect it ("" = any edge that hears it); only its answer counts."""
+        self.records[seq]["edge"] = edge
         if copy:
             self.records[seq].update(copy=1)
             self.copies[seq] = now
             return
         self.records[seq].update(send=now, probe=int(probe))
         self.in_flight[seq] = now
+
+    def edge_of(self, seq: int) -> str:
+        """The edge a frame waiting to be sent goes to."""
+        return str(self.records[seq].get("edge", ""))
 
     def send_replaced(self, seq: int) -> None:
         """A frame (or copy) still waiting for the link when a newer one took its place."""
@@ -172,7 +187,10 @@ class FrameBook:
     # Results
     def local_result(self, seq: int, now: float, service: float, infer_time: float,
                      boxes: np.ndarray, scores: np.ndarray, cpu: float | None = None) -> None:
-        rec = self.records[seq]
+        rec = self.records.get(seq)
+        if rec is None or rec["status"] != "pending":  # booked meanwhile (a failed dispatch)
+            self.counters["late_or_unknown_results"] += 1
+            return
         rec.update(result=now, rtt_ms=(now - rec["capture"]) * 1e3, local_infer_ms=infer_time * 1e3,
                    n_persons=len(scores))
         self.persons[seq] = (boxes, scores)
@@ -180,14 +198,20 @@ class FrameBook:
         self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
-                    boxes: np.ndarray, scores: np.ndarray) -> str:
-        """Book the edge's answer; returns its bucket, or ``unknown`` for a frame not in flight
-        (late after its timeout, or never sent)."""
+                    boxes: np.ndarray, scores: np.ndarray, edge: str | None = None) -> str:
+        """Book the edge's answer; returns its bucket, ``unknown`` for a frame not in flight
+        (late after its timeout, or never sent), or ``wrong_edge`` for an answer from another
+        edge than the one the frame was sent to (``edge``: the answering edge; counted, the frame
+        still waits for its own edge)."""
+        rec = self.records.get(seq)
+        if edge is not None and rec is not None and rec.get("edge") and rec["edge"] != edge and (
+                seq in self.in_flight or seq in self.copies):
+            self.counters["wrong_edge_results"] += 1
+            return "wrong_edge"
         self._last_reply = now
         self._lost_streak = 0
         sent = self.in_flight.pop(seq, None)
         copy_sent = self.copies.pop(seq, None) if sent is None else None
-        rec = self.records.get(seq)
         sent_at = sent if sent is not None else copy_sent
         if sent_at is None or rec is None:
             self.counters["late_or_unknown_results"] += 1
@@ -211,6 +235,7 @@ class FrameBook:
         rec.update(rtt_ms=rtt * 1e3, n_persons=len(scores))
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "edge_done")
+        self.per_edge[str(rec.get("edge") or edge or "")] += 1
         self.strategy.on_edge_result(rtt, reply)
         if rec.get("probe"):
             self._probe_answered(now - sent, now)
@@ -263,6 +288,18 @@ class FrameBook:
                 self._book_lost(seq, now)
             self._enter_fallback(now, "edge liveliness lost")
 
+    def edge_gone(self, edge: str, now: float) -> list[int]:
+        """One edge's token went while others stay: the frames (and copies) sent to it will not be
+        answered, booked lost at once; returns their seqs. (The last edge going is
+        ``edges_changed``.)"""
+        lost = [seq for seq in self.in_flight if self.records[seq].get("edge") == edge]
+        for seq in lost:
+            self._book_lost(seq, now)
+        for seq in [k for k in self.copies if self.records[k].get("edge") == edge]:
+            del self.copies[seq]
+            self.counters["copies_lost"] += 1
+        return lost
+
     def _book_lost(self, seq: int, now: float) -> None:
         self.in_flight.pop(seq, None)
         self.finish(seq, "edge_lost")
@@ -277,6 +314,7 @@ class FrameBook:
             self._probe_streak = 0
             self.counters["fallbacks"] += 1
             self.fallback_events.append({"start": now, "end": float("nan")})
+            del self.fallback_events[:-MAX_FALLBACK_EVENTS]  # a flapping link for days: the newest
             log.warning("fallback to local detection: %s", why)
 
     def _probe_answered(self, waited: float, now: float) -> None:
@@ -312,8 +350,9 @@ class FrameBook:
 
     def summary(self, samples: list[dict[str, float]]) -> dict[str, Any]:
         """The run in figures, as the offloading thesis reports it, with the monitor ``samples``
-        (CPU, Mbps, power, ping once a second) averaged."""
-        bal, recs = self.balance(), list(self.records.values())
+        (CPU, Mbps, power, ping once a second) averaged. Exact however many records retired: the
+        per-frame means are running sums (robot/framelog.py)."""
+        bal, totals = self.balance(), self.log.totals_now()
         done = bal["local_done"] + bal["edge_done"]
 
         def mean(xs: list[Any]) -> float | None:
@@ -325,15 +364,15 @@ class FrameBook:
             "balanced": self.balanced(),
             "processed_pct": 100.0 * done / bal["frames_in"] if bal["frames_in"] else 0.0,
             "offloaded_pct": 100.0 * self.strategy.offloaded / max(self.strategy.total, 1),
-            "robot_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "local_done"]),
-            "edge_rtt_ms": mean([r.get("rtt_ms") for r in recs if r["status"] == "edge_done"]),
-            "local_infer_ms": mean([r.get("local_infer_ms") for r in recs]),
-            "edge_infer_ms": mean([r.get("edge_infer_ms") for r in recs if r["status"] == "edge_done"]),
+            **totals.figures(),
             "cpu_process_pct": mean([s["cpu_process"] for s in samples]),
             "cpu_system_pct": mean([s["cpu_system"] for s in samples]),
             "mbps_out": mean([s["mbps_out"] for s in samples]),
             "power_w": mean([s["power_w"] for s in samples]),
             "ping_ms": mean([s.get("ping_ms") for s in samples]),
             "fallbacks": list(self.fallback_events),
+            "records_retired": self.log.retired,
+            "records_on_disk": self.log.folder is not None,
+            "per_edge": dict(self.per_edge),
             "other": {k: v for k, v in self.counters.items() if k not in bal},
         }

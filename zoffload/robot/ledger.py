@@ -1,8 +1,9 @@
 """Per-scan bookkeeping on the robot: every scan ends in exactly one bucket.
 
-    produced  = published + dropped at source (by reason) + sending
+    produced  = published + dropped at source (by reason) + sending + local
     published = acked + edge_dropped + edge_error + edge_refused + lost + late + in_flight
 
+``local``: registered by the robot's own odometry instead of being sent (no edge mapped the robot).
 ``sending``: handed to the sender thread, not published yet (at most two: the one it is encoding
 and the one waiting in its slot). ``edge_refused``: the edge did not admit this robot (allowlist,
 ``max_robots``). ``lost``: no ack within the timeout. ``late``: its ack came after that (moved out
@@ -65,6 +66,23 @@ class ScanLedger:
                                      status=f"source:{reason}")
             self.log.trim()
 
+    def local(self, seq: int, record: dict[str, Any], pose: np.ndarray) -> None:
+        """Registered by the robot itself instead of being sent: a terminal bucket, with a pose."""
+        self.counters["local"] += 1
+        self.records[seq] = dict(record, seq=seq, status="local", pose_source="local", edge="")
+        self.poses[seq] = pose
+        self.log.trim()
+
+    def local_pose(self, seq: int, pose: np.ndarray) -> bool:
+        """A pose the robot's odometry found for a scan its edge never answered (the bucket stays
+        what the ack timeout makes it); False when the scan has a pose or no record already."""
+        rec = self.records.get(seq)
+        if rec is None or seq in self.poses:
+            return False
+        self.poses[seq] = pose
+        rec["pose_source"] = "local"
+        return True
+
     def handed_off(self, seq: int, record: dict[str, Any]) -> None:
         """Sized and given to the sender thread."""
         self.sending.add(seq)
@@ -103,6 +121,7 @@ class ScanLedger:
             rec["status"] = bucket
             if bucket == "acked":
                 self.poses[ack.seq] = np.array(ack.pose)
+                rec["pose_source"], rec["edge"] = "edge", ack.edge
                 nbytes = int(rec.get("bytes") or 0)
                 self.recent.append(AckInfo(nbytes, rtt - edge_time, ack.interarrival, slot))
                 self._acked_bytes.append((recv_stamp, nbytes))
@@ -152,6 +171,7 @@ class ScanLedger:
             "published": c["published"],
             "dropped_source": sum(self.dropped_source.values()),
             "sending": len(self.sending),
+            "local": c["local"],
             "acked": c["acked"],
             "edge_dropped": c["edge_dropped"],
             "edge_error": c["edge_error"],
@@ -164,7 +184,7 @@ class ScanLedger:
     def balanced(self) -> bool:
         b = self.balance()
         return (
-            b["produced"] == b["published"] + b["dropped_source"] + b["sending"]
+            b["produced"] == b["published"] + b["dropped_source"] + b["sending"] + b["local"]
             and b["published"] == b["acked"] + b["edge_dropped"] + b["edge_error"] + b["edge_refused"]
             + b["lost"] + b["late"] + b["in_flight"]
         )

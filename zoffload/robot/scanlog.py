@@ -24,8 +24,10 @@ RECORD_FIELDS = (
     "seq", "index", "capture_stamp", "voxel", "n_raw", "n_nonfinite", "n_sent", "bytes", "coding",
     "compressed", "skipped", "reason", "work_ms", "cpu_ms", "cpu_loop_ms", "cpu_send_ms", "send_stamp",
     "status", "rtt", "network_time", "interarrival", "queue_time", "proc_time", "map_points",
-    "keypoints", "sigma", "pose_source",
+    "keypoints", "sigma", "pose_source", "edge", "cpu_local_ms",
 )
+MAX_JUMPS = 10_000  # switch jumps kept
+JUMP_SPAN = 10  # a switch further than this many scans from the poses before it measures nothing
 LIVE = ("sending", "in_flight")  # statuses an ack or the sender may still change
 
 
@@ -77,8 +79,10 @@ class ScanTotals:
     cpu: Histogram = field(default_factory=Histogram)  # per scan sent: loop + sender threads
     cpu_loop: Histogram = field(default_factory=Histogram)
     cpu_send: Histogram = field(default_factory=Histogram)
+    poses: PoseContinuity = field(default_factory=lambda: PoseContinuity())
 
-    def add(self, r: dict[str, Any]) -> None:
+    def add(self, r: dict[str, Any], pose: np.ndarray | None = None) -> None:
+        self.poses.add(r, pose)
         if "bytes" in r:
             self.sent += 1
             self.bytes += float(r["bytes"])
@@ -104,11 +108,13 @@ class ScanTotals:
         if int(r["seq"]) > self.map_points[0] and "map_points" in r:
             self.map_points = (int(r["seq"]), int(r["map_points"]))
 
-    def with_records(self, records: Iterable[dict[str, Any]]) -> ScanTotals:
-        """These totals plus ``records`` (the ones still in memory), as a new object."""
+    def with_records(self, records: Iterable[dict[str, Any]],
+                     poses: dict[int, np.ndarray] | None = None) -> ScanTotals:
+        """These totals plus ``records`` (the ones still in memory) and their ``poses``, as a new
+        object."""
         out = copy.deepcopy(self)
         for r in records:
-            out.add(r)
+            out.add(r, None if poses is None else poses.get(int(r["seq"])))
         return out
 
     def scans(self, skipped: int) -> dict[str, Any]:
@@ -125,6 +131,43 @@ class ScanTotals:
             "mean_rtt_ms": self.rtt_sum / self.acked * 1e3 if self.acked else None,
             "map_points": max(self.map_points[1], 0),
         }
+
+
+@dataclass
+class PoseContinuity:
+    """Over records in scan order: the longest run of scans without any pose (in scans, and in
+    seconds between the capture of the poses on either side), and the jump at each switch of
+    who gave the pose (edge to local, local to edge, one edge to another):
+    |p_s - (p_a + (p_a - p_b) (s - a) / (a - b))| with a, b the two posed scans before s (for
+    consecutive scans: p_s - (p_{s-1} + (p_{s-1} - p_{s-2})))."""
+
+    run: int = 0  # scans without a pose since the last posed one
+    max_gap_scans: int = 0
+    max_gap_s: float = 0.0
+    jumps: list[float] = field(default_factory=list)
+    _last: list[tuple[int, np.ndarray, float]] = field(default_factory=list)  # (seq, xyz, stamp), last 2
+    _source: tuple[str, str] | None = None
+
+    def add(self, r: dict[str, Any], pose: np.ndarray | None) -> None:
+        if pose is None:
+            self.run += 1
+            self.max_gap_scans = max(self.max_gap_scans, self.run)
+            return
+        seq, xyz = int(r["seq"]), np.asarray(pose, np.float64)[:3, 3]
+        stamp = float(r.get("capture_stamp", math.nan))
+        if self.run and self._last:
+            gap = stamp - self._last[-1][2]
+            if math.isfinite(gap):
+                self.max_gap_s = max(self.max_gap_s, gap)
+        self.run = 0
+        source = (str(r.get("pose_source") or ""), str(r.get("edge") or ""))
+        if self._source is not None and source != self._source and len(self._last) == 2:
+            (b, pb, _), (a, pa, _) = self._last
+            if 0 < a - b and 0 < seq - a <= JUMP_SPAN and len(self.jumps) < MAX_JUMPS:
+                predicted = pa + (pa - pb) * (seq - a) / (a - b)
+                self.jumps.append(float(np.linalg.norm(xyz - predicted)))
+        self._source = source
+        self._last = [*self._last[-1:], (seq, xyz, stamp)]
 
 
 class ScanLog:
@@ -151,9 +194,9 @@ class ScanLog:
             self._retire(seq, self.records.pop(seq))
 
     def _retire(self, seq: int, rec: dict[str, Any]) -> None:
-        self.totals.add(rec)
-        self.retired += 1
         pose, gt = self.poses.pop(seq, None), self.gt_poses.pop(seq, None)
+        self.totals.add(rec, pose)
+        self.retired += 1
         if self.folder is None:
             return
         self._open()

@@ -2,7 +2,8 @@
 policy, streams it to the edge, books every ack.
 
 Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck), the
-         edges present (the robot server's ``EdgePresence``).
+         edges present (the robot server's ``EdgePresence``), the fleet link (robot/fleet.py:
+         which edge maps the robot, under which epoch).
 Outputs: ``<ns>/data/<robot>/scan`` (wire.Scan, congestion control BLOCK_FIRST: the first scan that
          meets a full queue waits, on the sender thread; newer ones replace it in the sender's slot
          and are counted, never sent in pieces); status values for the robot's 1 Hz status
@@ -12,6 +13,11 @@ Three parts, kept apart: sizing (robot/sizer.py: policy, grid pass, payload layo
 thread), sending (robot/sender.py: compression, the wire message and ``put()`` on their own
 thread) and booking (robot/ledger.py). The robot's CPU time per scan is measured on both threads
 (``time.thread_time``) and reported with the process's whole CPU time.
+
+With the attach protocol (``fleet.attach``) every scan carries its edge and epoch, acks count only
+from that assignment, and while no edge maps the robot its scans are registered here by a light
+KISS-ICP (robot/odometry.py, booked ``local``) so the pose never stops. Without it (legacy) scans
+go to any edge present and are dropped as ``edge_absent`` when there is none.
 """
 
 from __future__ import annotations
@@ -35,7 +41,9 @@ from zoffload.policy.rate import LinkView
 from zoffload.policy.scale import ScalePolicy
 from zoffload.protocol import coding, wire
 from zoffload.protocol.keys import Keys
+from zoffload.robot.fleet import FleetLink, FleetState, Sensor
 from zoffload.robot.ledger import ScanLedger
+from zoffload.robot.odometry import LocalOdometry
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.scanlog import ScanLog, ScanTotals
 from zoffload.robot.sender import Sender
@@ -68,6 +76,14 @@ class StreamOptions:
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
     out_dir: Path | None = None  # records retire onto disk here as the run goes (robot/scanlog.py)
     keep_records: int = 4096  # records held in memory
+    # The fleet (RobotFleetSettings)
+    attach: bool = False  # the attach protocol; off: any present edge, edge "" and epoch 0
+    attach_timeout: float = 1.0
+    failover_after: float = 0.5
+    local_odometry: bool = True
+    local_voxel: float | None = None
+    local_threads: int = 1
+    catch_up: int = 10
 
 
 @dataclass
@@ -77,6 +93,8 @@ class _Outgoing:
     n_raw: int
     sized: Sized
     cpu_loop: float  # seconds of the loop thread's CPU for this scan
+    edge: str = ""
+    epoch: int = 0
 
 
 class ScanStreamer:
@@ -103,6 +121,13 @@ class ScanStreamer:
         self._coded: deque[tuple[int, int]] = deque(maxlen=5)  # (bytes, points) of compressed scans
         self._refused_at = -math.inf
         self._cpu = {"process_s": 0.0, "sensor_s": 0.0, "wall_s": 0.0}
+        o = options
+        self.fleet: FleetLink | None = None
+        self.fleet_state = FleetState(o.robot_id, o.failover_after) if o.attach else None
+        self.odometry = (LocalOdometry(o.robot_id, source.max_range, o.local_voxel, o.local_threads,
+                                       o.catch_up) if o.attach and o.local_odometry else None)
+        self._edge_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=2)  # newest acked, ascending
+        self._pose: tuple[np.ndarray, float] | None = None  # the newest pose, its source (0 edge, 1 local)
 
     @property
     def voxel(self) -> float:
@@ -124,10 +149,18 @@ class ScanStreamer:
         self._scan_pub = session.declare_publisher(
             self.keys.scan(robot), congestion_control=zenoh.CongestionControl.BLOCK_FIRST)
         self.sender.start()
+        if self.fleet_state is not None:
+            odo = self.odometry
+            self.fleet = FleetLink(self.keys, self.fleet_state,
+                                   Sensor(self.source.max_range, self.opts.voxel_range[1], self.opts.rate_hz),
+                                   self.opts.attach_timeout, odo.snapshot if odo is not None else None)
+            self.fleet.start(session, presence)
         log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
                  self.policy.name, self.opts.coding)
 
     def close(self) -> None:
+        if self.fleet is not None:
+            self.fleet.close()
         undeclare(getattr(self, "_ack_sub", None), getattr(self, "_scan_pub", None))
         close = getattr(self.source, "close", None)  # a ROS 2 topic's session, a bag's file
         if close is not None:
@@ -143,18 +176,88 @@ class ScanStreamer:
         if ack.robot != self.opts.robot_id:
             self.drops.drop("foreign_ack", f"an ack for robot {ack.robot!r}")
             return
-        # Answers come from an edge that is present (an ACL'd router lets only edge identities put
-        # acks; without one, a forged ack from nowhere is refused here at least)
-        if ack.edge and self.presence is not None and ack.edge not in self.presence.edges:
-            self.drops.drop("foreign_ack", f"ack from {ack.edge!r}, not a present edge")
+        fleet = self.fleet_state
+        if fleet is None:
+            # Answers come from an edge that is present (an ACL'd router lets only edge identities
+            # put acks; without one, a forged ack from nowhere is refused here at least)
+            if ack.edge and self.presence is not None and ack.edge not in self.presence.edges:
+                self.drops.drop("foreign_ack", f"ack from {ack.edge!r}, not a present edge")
+                return
+        elif not (fleet.current(ack.edge, ack.epoch) or self._sent_under(ack)):
+            self.drops.drop("stale_ack", f"ack of scan {ack.seq} from {ack.edge!r} under epoch {ack.epoch}")
             return
         with self._lock:
             bucket = self.ledger.on_ack(ack, recv)
             refused = self.ledger.counters["edge_refused"]
+            in_flight = self.ledger.in_flight
+            if bucket == "acked":
+                if not self._edge_poses or ack.seq > self._edge_poses[-1][0]:
+                    self._edge_poses.append((ack.seq, np.array(ack.pose)))
+                    self._pose = (self._edge_poses[-1][1], 0.0)
+        if fleet is not None and bucket != "unknown" and fleet.on_ack(ack.edge, ack.epoch, ack.status, recv,
+                                                                      in_flight):
+            log.warning("edge %s refused scan %d under our epoch: moving", ack.edge, ack.seq)
+            if self.fleet is not None:
+                self.fleet.wake()
         if bucket == "edge_refused" and recv - self._refused_at >= 1.0:  # one line a second at most
             self._refused_at = recv
             log.warning("edge %s refused scan %d (%d refused so far): %s", ack.edge or "?", ack.seq,
                         refused, ack.detail[:200])
+
+    def _sent_under(self, ack: wire.ScanAck) -> bool:
+        """Whether ``ack`` answers a scan in flight under that very edge and epoch (an edge the
+        robot has just left still answers the scans it was sent, as a draining edge does)."""
+        with self._lock:
+            rec = self.ledger.records.get(ack.seq)
+            return (bool(ack.edge) and rec is not None and ack.seq in self.ledger.pending
+                    and rec.get("edge") == ack.edge and rec.get("epoch") == ack.epoch)
+
+    def _target(self, reading: Reading, record: dict[str, Any]) -> tuple[str, int] | None:
+        """Where this scan goes: (edge, epoch); None when it is done with here (registered
+        locally or dropped as ``edge_absent``). Legacy: ("", 0) while any edge is present."""
+        fleet = self.fleet_state
+        if fleet is None:
+            if self.presence is not None and self.presence.any:
+                return "", 0
+            with self._lock:
+                self.ledger.drop_at_source(reading.seq, "edge_absent", record)
+            return None
+        target = fleet.target()
+        odo = self.odometry
+        if target is not None:
+            if odo is not None and odo.active:
+                odo.end()  # an edge maps the robot again
+            return target
+        if odo is None:
+            with self._lock:
+                self.ledger.drop_at_source(reading.seq, "edge_absent", record)
+            return None
+        if not odo.active:
+            self._begin_local(reading.seq)
+        pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
+        with self._lock:
+            self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
+            self._pose = (pose, 1.0)
+        return None
+
+    def _begin_local(self, seq: int) -> None:
+        """No edge maps the robot: start the local odometry from the freshest checkpoint and the
+        newest acked poses, and register first the held scans the edge never answered."""
+        assert self.odometry is not None and self.fleet_state is not None
+        odo = self.odometry
+        cp, mine = self.fleet_state.checkpoint, odo.snapshot().checkpoint
+        if mine is not None and (cp is None or mine.seq > cp.seq):
+            cp = mine
+        with self._lock:
+            acked = list(self._edge_poses)
+            posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
+        odo.begin(cp, acked)
+        for s, pose, cpu in odo.catch_up(seq, posed):
+            with self._lock:
+                if self.ledger.local_pose(s, pose):
+                    self.ledger.records[s]["cpu_local_ms"] = cpu
+        log.info("mapping locally from scan %d (checkpoint %s, %d scans caught up)", seq,
+                 f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
 
     # Per-scan work (the loop thread)
     def process(self, reading: Reading) -> None:
@@ -164,11 +267,13 @@ class ScanStreamer:
                                   "n_raw": len(frame.points)}
         if frame.gt_pose is not None:
             self.ledger.gt_poses[reading.seq] = frame.gt_pose
-        edge_present = self.presence is not None and self.presence.any
+        target = self._target(reading, record)
+        if target is None:
+            return
+        if self.odometry is not None:  # kept in case the edge never answers it
+            self.odometry.hold(reading.seq, reading.frame.points, reading.capture_stamp)
+        record.update(edge=target[0], epoch=target[1])
         with self._lock:
-            if not edge_present:
-                self.ledger.drop_at_source(reading.seq, "edge_absent", record)
-                return
             if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 return
@@ -191,7 +296,7 @@ class ScanStreamer:
         # Hand over to the sender thread: the loop goes back to the sensor whatever the link does
         with self._lock:
             self.ledger.handed_off(reading.seq, record)
-        out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop)
+        out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop, *target)
         replaced = self.sender.offer(out)
         if replaced is not None:
             with self._lock:
@@ -214,13 +319,16 @@ class ScanStreamer:
             data = wire.encode(scan_message(
                 sized, robot=o.robot_id, seq=item.seq, send_stamp=send_stamp,
                 capture_stamp=item.capture_stamp, voxel_max=o.voxel_range[1],
-                max_range=self.source.max_range, n_raw=item.n_raw, skipped=skipped))
+                max_range=self.source.max_range, n_raw=item.n_raw, skipped=skipped, edge=item.edge,
+                epoch=item.epoch))
             with self._lock:
                 self.ledger.published(item.seq, send_stamp, {"bytes": len(data), "skipped": skipped,
                                                              "compressed": compressed})
                 if compressed or sized.coding != "q16d":
                     self._coded.append((len(data), sized.n_points))
             self._scan_pub.put(data)
+            if self.fleet_state is not None:
+                self.fleet_state.on_sent(send_stamp)
         except Exception as exc:  # not published: the scan is booked, the thread carries on
             with self._lock:
                 if item.seq in self.ledger.sending:
@@ -257,6 +365,10 @@ class ScanStreamer:
     # Main loop
     def run(self) -> None:
         o = self.opts
+        if self.fleet is not None and self.presence is not None and self.presence.any:
+            # an edge is there: let the first attach finish before the first scan (else it
+            # would be registered locally for no reason)
+            self.fleet.wait_settled(o.attach_timeout + 0.5)
         sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
         p0, w0 = time.process_time(), time.monotonic()
         sensor.start()
@@ -264,8 +376,11 @@ class ScanStreamer:
             while not self.stop.is_set():
                 reading = sensor.take(timeout=0.05)
                 with self._lock:
-                    self.ledger.expire(time.monotonic(), o.ack_timeout)
+                    expired = self.ledger.expire(time.monotonic(), o.ack_timeout)
                     self._book_overwrites(sensor)
+                    idle = expired and self.ledger.in_flight == 0
+                if idle and self.fleet_state is not None:
+                    self.fleet_state.no_scans_in_flight()
                 if reading is None:
                     if sensor.exhausted:
                         break
@@ -317,6 +432,12 @@ class ScanStreamer:
             values["last_T"] = float(self.ledger.last_interarrival)
             values["skipped"] = float(sum(self.ledger.dropped_source[r] for r in DELIBERATE))
             recent = list(self.ledger.records.values())[-20:]
+            if self._pose is not None:
+                pose, src = self._pose
+                values.update(pose_x=float(pose[0, 3]), pose_y=float(pose[1, 3]), pose_z=float(pose[2, 3]),
+                              pose_source=src)
+        if self.fleet_state is not None:
+            values["attached"] = float(self.fleet_state.target() is not None)
         answered = [r for r in recent if "rtt" in r]
         if answered:
             values["rtt_ms"] = float(np.mean([r["rtt"] for r in answered]) * 1e3)
@@ -329,7 +450,7 @@ class ScanStreamer:
     # Results
     def metrics(self) -> dict[str, Any]:
         with self._lock:
-            totals = self.ledger.log.totals.with_records(self.ledger.records.values())
+            totals = self.ledger.log.totals.with_records(self.ledger.records.values(), self.ledger.poses)
             balance = self.ledger.balance()
             out: dict[str, Any] = {
                 "robot": self.opts.robot_id,
@@ -349,9 +470,25 @@ class ScanStreamer:
         out["scans"] = totals.scans(sum(out["dropped_source"].get(r, 0) for r in DELIBERATE))
         out["records_retired"] = self.ledger.log.retired
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
+        if self.fleet_state is not None:
+            out["fleet"] = self._fleet_metrics(totals, balance)
         if hasattr(self.policy, "counts"):
             out["policy_counts"] = dict(self.policy.counts)
         return out
+
+    def _fleet_metrics(self, totals: ScanTotals, balance: dict[str, int]) -> dict[str, Any]:
+        assert self.fleet_state is not None
+        odo = self.odometry
+        p = totals.poses
+        return {**self.fleet_state.metrics(),
+                "local_scans": balance["local"],
+                "caught_up": odo.caught_up if odo is not None else 0,
+                "local_cpu_ms_per_scan": (odo.cpu_summary() if odo is not None
+                                          else {"median": None, "mean": None}),
+                "local_voxel": odo.voxel if odo is not None else None,
+                "max_pose_gap_scans": p.max_gap_scans, "max_pose_gap_s": p.max_gap_s,
+                "switch_jumps_m": list(p.jumps),
+                "stale_acks": self.drops.snapshot().get("stale_ack", 0)}
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -394,10 +531,14 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
     policy = policy or load_scale_policy(settings.scale_policy, settings.voxel, settings.voxel_range,
                                          widen=settings.voxel_widen, max_skip=settings.max_skip,
                                          stall_after=settings.stall_after, jitter_pace=settings.jitter_pace)
+    f = settings.fleet
     options = StreamOptions(
         robot_id=settings.robot_id, rate_hz=settings.rate_hz or source.rate_hz, replay=settings.replay,
         max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
         quant_fraction=settings.quant_fraction, zstd_level=settings.zstd_level,
         ack_timeout=settings.ack_timeout, max_in_flight=settings.max_in_flight,
-        out_dir=Path(settings.out_dir) if settings.out_dir else None)
+        out_dir=Path(settings.out_dir) if settings.out_dir else None,
+        attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
+        local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,
+        catch_up=f.catch_up)
     return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

@@ -5,12 +5,14 @@ Default deny; what each may do, with flows seen from the router (ingress: from t
 egress: to it) and every rule key including the message's key (Zenoh checks inclusion):
 
 * robot R: put its own ``data/R/scan``, ``data/R/frame``, ``status/R``; hold ``alive/robot/R``;
-  subscribe to and receive only its own answers (``data/R/scan_ack``, ``data/R/detections``);
-  query only its own ``ctrl/R/map`` and ``ctrl/R/ping`` and receive their replies; watch
-  ``alive/edge/*``.
-* edge E: subscribe to and receive every robot's scans and frames; put acks and detections for
-  any robot and its own ``status/edge/E``; declare and answer the ``ctrl/*/map|ping`` queryables;
-  hold ``alive/edge/E``; watch ``alive/robot/*``.
+  subscribe to and receive only its own answers (``data/R/scan_ack``, ``data/R/detections``,
+  ``data/R/checkpoint``) and the edges' status (``status/edge/*``: their capacity and load, which
+  the fleet assignment ranks by); query only its own ``ctrl/R/map``, ``ctrl/R/ping`` and
+  ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies; watch ``alive/edge/*``.
+* edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
+  checkpoints for any robot and its own ``status/edge/E``; declare and answer the
+  ``ctrl/*/map|ping`` queryables and its own ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
+  ``alive/robot/*``. An edge cannot answer another edge's attach queries.
 * monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
   ``alive/**``; never put.
 * everyone: the router may tell a client which subscriptions and queryables exist under the
@@ -46,8 +48,8 @@ def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> 
 
 
 def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
-    answers = [k.scan_ack(r), k.detections(r)]
-    ctrl = [k.map(r), k.ping(r)]
+    answers = [k.scan_ack(r), k.detections(r), k.checkpoint(r), k.all_edge_status()]
+    ctrl = [k.map(r), k.ping(r), _wild(lambda e: k.attach(r, e))]
     return [
         _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
         _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], answers),
@@ -63,12 +65,12 @@ def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
 
 def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
     inputs = [k.all_scans(), k.all_frames()]
-    ctrl = [k.all_maps(), k.all_pings()]
+    ctrl = [k.all_maps(), k.all_pings(), k.all_attaches(e)]
     return [
         _rule(f"edge_{e}_sub", "ingress", ["declare_subscriber"], inputs),
         _rule(f"edge_{e}_rx", "egress", ["put"], inputs),
         _rule(f"edge_{e}_put", "ingress", ["put"],
-              [_wild(k.scan_ack), _wild(k.detections), k.edge_status(e)]),
+              [_wild(k.scan_ack), _wild(k.detections), _wild(k.checkpoint), k.edge_status(e)]),
         _rule(f"edge_{e}_queryable", "ingress", ["declare_queryable"], ctrl),
         _rule(f"edge_{e}_queries", "egress", ["query"], ctrl),
         _rule(f"edge_{e}_reply", "ingress", ["reply"], ctrl),

@@ -126,6 +126,41 @@ class AdmissionSettings(_Strict):
         return [check_id(r, "robot id") for r in v]
 
 
+class EdgeFleetSettings(_Strict):
+    """The edge in a fleet: robots attach to it (and are refused when it is full), it hands each one
+    a checkpoint every few scans, and on SIGTERM it drains (final checkpoints, waits until its
+    robots have moved to another edge)."""
+
+    capacity: int | None = Field(
+        default=None, ge=1,
+        description="robots mapped at once; more are refused at attach (default: admission.max_robots)",
+    )
+    require_attach: bool = Field(
+        default=False,
+        description="map only robots that attached; off: a robot without the attach protocol "
+                    "(epoch 0) is mapped by every edge that hears it",
+    )
+    checkpoint_every: int = Field(
+        default=10, ge=1, description="scans between the checkpoints sent to each robot",
+    )
+    checkpoint_resolution: float | None = Field(
+        default=None, gt=0,
+        description="voxel size of a checkpoint's local map, in m (default: the mapper's voxel size)",
+    )
+    drain_timeout: float = Field(
+        default=10.0, ge=0,
+        description="seconds a draining edge (SIGTERM) waits for its robots to move before it stops",
+    )
+    shed: bool = Field(
+        default=True,
+        description="when the mappers fall behind, hand the newest robot to another edge",
+    )
+    shed_load: float = Field(
+        default=0.9, gt=0, le=1.0,
+        description="the mapper workers' busy share over the last few seconds that counts as behind",
+    )
+
+
 class LimitsSettings(_Strict):
     """What the edge accepts in one message; checked before anything is allocated."""
 
@@ -316,6 +351,34 @@ class EdgeRos2Settings(Ros2Settings):
         return node_name(v)
 
 
+class RobotFleetSettings(_Strict):
+    """How the robot picks its edge and keeps its pose: it attaches to one live edge (weighted
+    rendezvous ranking), moves to another when that edge goes, drains, refuses it or stops
+    answering, and registers scans itself with a light KISS-ICP while no edge maps it."""
+
+    attach: bool = Field(
+        default=True,
+        description="use the attach protocol; off: stream to whatever edge listens (no failover)",
+    )
+    attach_timeout: float = Field(default=1.0, gt=0, description="seconds an edge has to answer an attach")
+    failover_after: float = Field(
+        default=1.0, gt=0,
+        description="seconds without any ack from the robot's edge (scans in flight) before it moves",
+    )
+    local_odometry: bool = Field(
+        default=True, description="register scans on the robot while no edge maps it",
+    )
+    local_voxel: float | None = Field(
+        default=None, gt=0,
+        description="voxel size of the local odometry, in m (default: max_range / 50, coarse and cheap)",
+    )
+    local_threads: int = Field(default=1, ge=1, description="threads of the local odometry's KISS-ICP")
+    catch_up: int = Field(
+        default=10, ge=0,
+        description="recent scans kept so the local odometry can register the ones its edge never answered",
+    )
+
+
 class RobotSettings(_Strict):
     """The robot daemon: a scan source, its voxel sizing, the link to the edge and the camera."""
 
@@ -400,6 +463,9 @@ class RobotSettings(_Strict):
     perception: PerceptionSettings = Field(
         default_factory=PerceptionSettings, description="the camera pipeline"
     )
+    fleet: RobotFleetSettings = Field(
+        default_factory=RobotFleetSettings, description="edge assignment, failover, local odometry",
+    )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="the Zenoh session")
 
     @field_validator("robot_id", "namespace")
@@ -424,6 +490,9 @@ class EdgeSettings(_Strict):
     detector: DetectorSettings = Field(default_factory=DetectorSettings, description="the object detector")
     admission: AdmissionSettings = Field(default_factory=AdmissionSettings, description="robots served")
     limits: LimitsSettings = Field(default_factory=LimitsSettings, description="message size caps")
+    fleet: EdgeFleetSettings = Field(
+        default_factory=EdgeFleetSettings, description="attach, checkpoints, drain, shedding",
+    )
     ros2: EdgeRos2Settings = Field(default_factory=EdgeRos2Settings, description="ROS 2 outputs")
     map_dir: str | None = Field(
         default=None, description="export every robot's map and trajectory here on shutdown"

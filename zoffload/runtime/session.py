@@ -69,6 +69,15 @@ def security_entries(z: ZenohSettings) -> dict[str, Any]:
     return entries
 
 
+# Zenoh's own lease is 10 s: a SIGKILLed edge on a machine that stays up closes its sockets and is
+# seen gone at once, but a machine that dies or leaves the Wi-Fi is seen gone only when its lease
+# runs out. Each node announces its own lease (the time the others wait for a keep-alive from it),
+# so robots, edges and the router all say 2 s, keep-alives every 0.5 s: an edge lost is an edge
+# seen gone within 2 s, which bounds the robot's failover (issue 12). ``--cfg`` overrides these.
+LEASE_MS = 2000
+LINK_DEFAULTS = {"transport/link/tx/lease": str(LEASE_MS), "transport/link/tx/keep_alive": "4"}
+
+
 def zenoh_config(z: ZenohSettings) -> zenoh.Config:
     """Build a ``zenoh.Config`` from the session settings: the config file first, then the session
     settings, then ``--cfg``. With a config file, the settings that have a default (mode, scouting,
@@ -92,6 +101,9 @@ def zenoh_config(z: ZenohSettings) -> zenoh.Config:
             conf.insert_json5("transport/shared_memory/enabled", json.dumps(z.shared_memory))
         for key, value in entries.items():
             conf.insert_json5(key, json.dumps(value))
+        if not z.config_file:
+            for key, value in LINK_DEFAULTS.items():
+                conf.insert_json5(key, value)
         for item in z.cfg:
             key, value = item.split(":", 1)
             conf.insert_json5(key, value)

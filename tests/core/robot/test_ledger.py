@@ -37,7 +37,7 @@ def test_every_bucket_and_the_balance() -> None:
     assert led.on_ack(ack(5, 999.0), 105.7) == "unknown"  # stamp does not match what was sent
     led.finish()
     b = led.balance()
-    assert b == {"produced": 8, "published": 7, "dropped_source": 1, "sending": 0, "acked": 1,
+    assert b == {"produced": 8, "published": 7, "dropped_source": 1, "sending": 0, "local": 0, "acked": 1,
                  "edge_dropped": 1, "edge_error": 1, "edge_refused": 0, "lost": 3, "late": 1, "in_flight": 0}
     assert led.balanced()
 
@@ -82,3 +82,24 @@ def test_the_link_figures_the_policy_reads() -> None:
     assert led.acked_bytes_per_s(103.0) == 10 * 1000  # acks of the last second
     assert math.isnan(ScanLedger().acked_bytes_per_s(1.0))  # nothing acked yet: no rate
     assert led.last_ack_at == pytest.approx(102.95)
+
+
+def test_local_scans_are_a_terminal_bucket_and_catch_up_poses_keep_their_bucket() -> None:
+    led = ScanLedger()
+    for seq in range(6):
+        led.produced()
+        if seq < 3:
+            led.published(seq, send_stamp=10.0 + seq, record={"edge": "e1", "epoch": 5})
+        else:  # no edge mapped the robot: registered on it
+            led.local(seq, {"n_raw": 10}, np.eye(4) * seq)
+    assert led.on_ack(ack(0, 10.0), 10.05) == "acked"
+    assert led.records[0]["pose_source"] == "edge"
+    assert led.local_pose(1, np.eye(4)) and led.records[1]["pose_source"] == "local"
+    assert not led.local_pose(0, np.eye(4)) and not led.local_pose(99, np.eye(4))
+    led.finish()
+    b = led.balance()
+    assert b["local"] == 3 and b["acked"] == 1 and b["lost"] == 2 and led.balanced()
+    assert led.records[4]["status"] == "local" and led.records[4]["pose_source"] == "local"
+    assert sorted(led.poses) == [0, 1, 3, 4, 5]
+    led.counters["local"] += 1  # a scan booked twice would show
+    assert not led.balanced()

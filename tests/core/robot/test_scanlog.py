@@ -77,3 +77,21 @@ def test_histogram_quantiles_within_a_percent() -> None:
     assert h.mean() == pytest.approx(values.mean()) and Histogram().quantile(0.5) is None
     h.add(math.nan)
     assert h.n == 100_000
+
+
+def test_pose_gaps_and_switch_jumps_over_records_in_scan_order() -> None:
+    from zoffload.robot.scanlog import PoseContinuity
+
+    def pose(x: float) -> np.ndarray:
+        p = np.eye(4)
+        p[0, 3] = x
+        return p
+
+    c = PoseContinuity()
+    rows = [(0, "edge", "e1", 0.0), (1, "edge", "e1", 1.0), (2, None, None, None), (3, None, None, None),
+            (4, "local", "", 4.2), (5, "local", "", 5.2), (6, "edge", "e2", 6.0)]
+    for seq, src, edge, x in rows:
+        c.add({"seq": seq, "capture_stamp": seq / 10, "pose_source": src, "edge": edge},
+              None if x is None else pose(x))
+    assert c.max_gap_scans == 2 and abs(c.max_gap_s - 0.3) < 1e-9  # poses at 0.1 s and 0.4 s
+    assert np.allclose(c.jumps, [0.2, 0.2])  # 4.2 against 4.0 predicted; 6.0 against 6.2

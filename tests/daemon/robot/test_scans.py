@@ -14,7 +14,7 @@ from tests.helpers import KEYS, client, connect_to, listen_on, running_edge
 from zoffload.protocol import wire
 from zoffload.robot.scans import ScanStreamer, scan_streamer
 from zoffload.robot.server import RobotServer
-from zoffload.runtime.config import EdgeSettings, RobotSettings
+from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.simulated import SimulatedSource
@@ -49,12 +49,18 @@ def test_scans_are_acked_and_counters_balance(free_port: int, tmp_path: Path) ->
 
 
 def test_without_an_edge_the_robot_keeps_running_and_counts(free_port: int) -> None:
+    # With the attach protocol (default) the robot maps its scans itself; without it (legacy)
+    # they are dropped as edge_absent
     robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=10, rate_hz=50,
                                     wait_edge=0.2))
     m = robot.metrics()
     assert m["balanced"]
     assert m["balance"]["produced"] == 10 and m["balance"]["published"] == 0
-    assert m["dropped_source"] == {"edge_absent": 10}
+    assert m["balance"]["local"] == 10 and m["dropped_source"] == {}
+    legacy = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=10, rate_hz=50,
+                                     wait_edge=0.2, fleet=RobotFleetSettings(attach=False)))
+    m = legacy.metrics()
+    assert m["balanced"] and m["dropped_source"] == {"edge_absent": 10} and "fleet" not in m
 
 
 class NaNSource:
@@ -141,10 +147,15 @@ def test_scans_an_edge_refuses_are_booked_apart_and_the_counters_balance(free_po
 
     edge = EdgeSettings(zenoh=listen_on(free_port), admission=AdmissionSettings(robots=["someone_else"]))
     with running_edge(edge):
+        # Legacy (no attach): the edge refuses every scan
         robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=12, rate_hz=20,
-                                        max_in_flight=0))
+                                        max_in_flight=0, fleet=RobotFleetSettings(attach=False)))
+        # Attach protocol: the edge refuses the attach; the robot maps itself, sends nothing
+        attaching = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=12, rate_hz=20))
     m = robot.metrics()
     assert m["balanced"] and m["balance"]["edge_refused"] >= 8 and m["balance"]["acked"] == 0, m["balance"]
+    m = attaching.metrics()
+    assert m["balanced"] and m["balance"]["local"] == 12 and m["fleet"]["attach_refused"] >= 1, m
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,252 @@
+"""The mapping service's side of the fleet protocol over Zenoh on a loopback port: attach with a
+checkpoint (the poses continue it), periodic and final checkpoints, stale epochs refused, another
+edge's scans only counted, a full or draining edge refusing attaches, shedding a robot."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests.helpers import KEYS, client, listen_on, wait_for, wait_token
+from zoffload.edge.fleet import Fleet
+from zoffload.edge.mapping import MappingService
+from zoffload.edge.recipe import BoundedMapper, MapperRecipe
+from zoffload.edge.server import edge_zenoh
+from zoffload.mapping.mapper import Registration
+from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol import wire
+from zoffload.runtime.session import open_session
+from zoffload.sources.simulated import SimulatedSource
+
+pytest.importorskip("kiss_icp")
+SRC = SimulatedSource()
+
+
+@contextmanager
+def serving(service: MappingService, port: int) -> Iterator[zenoh.Session]:
+    session = open_session(edge_zenoh(listen_on(port)))
+    try:
+        service.start(session)
+        token = session.liveliness().declare_token(KEYS.edge_alive(service.edge_id))
+        yield session
+        token.undeclare()
+    finally:
+        service.stop()
+        session.close()
+
+
+class Inbox:
+    """Every message of one type on one key."""
+
+    def __init__(self, session: zenoh.Session, key: str, kind: type[wire.Message]) -> None:
+        self.items: list = []
+        self.sub = session.declare_subscriber(key, lambda s: self.items.append(
+            wire.decode(s.payload.to_bytes(), expect=kind)))
+
+    def wait(self, n: int, timeout: float = 20.0) -> None:
+        wait_for(lambda: len(self.items) >= n, timeout, f"{n} messages")
+
+
+def points(i: int) -> np.ndarray:
+    return voxel_downsample(SRC.read(i).points, 0.05).astype(np.float32)
+
+
+def scan(robot: str, seq: int, epoch: int = 0, edge: str = "", pts: np.ndarray | None = None) -> bytes:
+    pts = points(seq) if pts is None else pts
+    return wire.encode(wire.Scan(robot=robot, seq=seq, send_stamp=float(seq), capture_stamp=100.0 + seq,
+                                 voxel=0.05, voxel_max=0.07, max_range=SRC.max_range, n_raw=len(pts),
+                                 points=pts, epoch=epoch, edge=edge))
+
+
+def attach(s: zenoh.Session, robot: str, epoch: int, edge: str = "e1", checkpoint: bytes = b"",
+           seqs: list[int] | None = None, poses: np.ndarray | None = None) -> wire.AttachReply:
+    msg = wire.Attach(robot=robot, epoch=epoch, max_range=SRC.max_range, voxel_max=0.07, rate_hz=10.0,
+                      checkpoint=checkpoint, local_seqs=np.asarray(seqs or [], np.int64),
+                      local_poses=np.zeros((0, 4, 4)) if poses is None else poses)
+    replies = list(s.get(KEYS.attach(robot, edge), payload=wire.encode(msg), timeout=5))
+    assert len(replies) == 1 and replies[0].ok is not None
+    return wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.AttachReply)
+
+
+def first_run(n: int) -> BoundedMapper:
+    """The robot's first edge: the recipe's mapper over scans 0..n-1."""
+    m = MapperRecipe()(wire.decode(scan("r1", 0), expect=wire.Scan))
+    for i in range(n):
+        m.register(i, points(i))
+    return m
+
+
+def balanced(service: MappingService) -> bool:
+    st = service.status()
+    return st["samples"] == st.get("received", 0) + st["drops"] + st.get("other_edge", 0)
+
+
+def test_attach_continues_the_checkpoint_and_checkpoints_come_back(free_port: int) -> None:
+    old = first_run(20)
+    cp = old.checkpoint("r1", "e0", 1, 119.0)
+    assert cp is not None and cp.seq == 19
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=1),
+                             checkpoint_every=3)
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
+        cps = Inbox(s, KEYS.checkpoint("r1"), wire.Checkpoint)
+        # The robot registered scan 20 itself while it had no edge
+        local = old.register(20, points(20)).pose
+        reply = attach(s, "r1", 2, checkpoint=wire.encode(cp), seqs=[20], poses=local[None])
+        assert reply.accepted and reply.epoch == 2 and reply.edge == "e1"
+        assert (reply.robots, reply.capacity) == (1, 1)
+        assert service.status()["capacity"] == 1 and service.status()["robots"] == 1
+        pub = s.declare_publisher(KEYS.scan("r1"))
+        for seq in range(21, 31):
+            pub.put(scan("r1", seq, epoch=2, edge="e1"))
+            acks.wait(seq - 20)
+        ok = [a for a in acks.items if a.status == "ok"]
+        assert [a.seq for a in ok] == list(range(21, 31))
+        assert all(a.epoch == 2 and a.edge == "e1" for a in ok)
+        for seq, a in zip(range(21, 31), ok, strict=True):  # where the first edge would have gone
+            ref = old.register(seq, points(seq)).pose
+            assert np.linalg.norm(a.pose[:3, 3] - ref[:3, 3]) < 0.1, (seq, a.pose[:3, 3], ref[:3, 3])
+        assert np.linalg.norm(ok[0].pose[:3, 3]) > 1.0  # not back at the origin
+        # Checkpoints: after the first scan of the epoch, then every 3
+        cps.wait(4)
+        assert [c.seq for c in cps.items] == [21, 24, 27, 30]
+        assert all(c.epoch == 2 and c.edge == "e1" and not c.final and len(c.points) for c in cps.items)
+        assert cps.items[0].stamp == 121.0
+        np.testing.assert_allclose(cps.items[-1].pose, ok[-1].pose)
+        # The map's trajectory holds the robot's own pose, then the edge's
+        m = wire.decode(list(s.get(KEYS.map("r1"), timeout=5))[0].ok.payload.to_bytes(), expect=wire.MapReply)
+        assert m.seqs.tolist() == list(range(20, 31)) and m.scans == 10
+        np.testing.assert_allclose(m.poses[0], local)
+
+        # A stale epoch is refused, another edge's scan only counted, the epoch-less one mapped
+        pub.put(scan("r1", 31, epoch=1, edge="e1"))
+        acks.wait(11)
+        assert acks.items[-1].status == "refused" and acks.items[-1].detail == "not attached (epoch 1)"
+        assert acks.items[-1].epoch == 1 and acks.items[-1].edge == "e1"
+        pub.put(scan("r1", 32, epoch=3, edge="e2"))
+        wait_for(lambda: service.status().get("other_edge") == 1, what="other edge counted")
+        # Attaches: stale, full, bad checkpoint
+        assert attach(s, "r1", 2).detail == "stale epoch"
+        full = attach(s, "r2", 1)
+        assert not full.accepted and full.detail == "full: 1 of 1 robots" and full.capacity == 1
+        assert attach(s, "r1", 5, checkpoint=b"junk").detail.startswith("bad checkpoint: ")
+        assert "r2" not in service.robots
+        time.sleep(0.3)
+        assert len(acks.items) == 11  # nothing answered the other edge's scan
+        st = service.status()
+        assert st["drop.stale_epoch"] == 1 and st["attaches"] == 1 and st["attach_refused"] == 3
+        assert st["checkpoints"] == 4 and st["checkpoint_bytes"] > 1000
+        assert balanced(service)
+
+
+def test_drain_sends_final_checkpoints_and_keeps_mapping_the_old_epoch(free_port: int) -> None:
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=4))
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
+        cps = Inbox(s, KEYS.checkpoint("r1"), wire.Checkpoint)
+        assert attach(s, "r1", 1).accepted and attach(s, "r2", 1).accepted  # r2 never sends a scan
+        pub = s.declare_publisher(KEYS.scan("r1"))
+        for seq in range(3):
+            pub.put(scan("r1", seq, epoch=1, edge="e1"))
+            acks.wait(seq + 1)
+        cps.wait(1)
+        service.begin_drain()
+        cps.wait(2)  # idle: at once
+        final = cps.items[-1]
+        assert final.final and final.seq == 2 and final.epoch == 1
+        assert service.status()["draining"] == 1.0
+        assert attach(s, "r3", 1).detail == "draining"
+        pub.put(scan("r1", 3, epoch=1, edge="e1"))  # still mapped while it moves
+        acks.wait(4)
+        assert acks.items[-1].status == "ok"
+        assert not service.drained()
+        wait_for(service.drained, 5, "drained after a quiet second")
+        assert service.status()["final_checkpoints"] == 1  # r2 had nothing to hand over
+        assert balanced(service)
+
+
+class SlowMapper:
+    """A stand-in taking 50 ms a scan: one worker falls behind two robots at 20 Hz."""
+
+    def __init__(self) -> None:
+        self.seqs: list[int] = []
+
+    @property
+    def map_points(self) -> int:
+        return 0
+
+    @property
+    def scans(self) -> int:
+        return len(self.seqs)
+
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
+        time.sleep(0.05)
+        self.seqs.append(seq)
+        return Registration(pose=np.eye(4), keypoints=1, sigma=0.1, map_points=0, proc_time=0.05,
+                            icp_time=0.05)
+
+    def map_cloud(self) -> np.ndarray:
+        return np.zeros((0, 3), np.float32)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.seqs, np.int64), np.repeat(np.eye(4)[None], len(self.seqs), 0)
+
+
+class SlowRecipe:
+    def warm_up(self) -> None:
+        pass
+
+    def __call__(self, scan: wire.Scan, spill: object = None) -> SlowMapper:
+        return SlowMapper()
+
+
+def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int) -> None:
+    fleet = Fleet("e1", capacity=4, window=1.0)
+    service = MappingService(KEYS, SlowRecipe(), edge_id="e1", workers=1, queue=1, fleet=fleet)
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        acks = {r: Inbox(s, KEYS.scan_ack(r), wire.ScanAck) for r in ("r1", "r2")}
+        assert attach(s, "r1", 1).accepted and attach(s, "r2", 1).accepted
+        pts = np.zeros((10, 3), np.float32)
+        stop = threading.Event()
+
+        def stream() -> None:
+            pubs = {r: s.declare_publisher(KEYS.scan(r)) for r in ("r1", "r2")}
+            seq = 0
+            while not stop.is_set():
+                for r, pub in pubs.items():
+                    pub.put(scan(r, seq, epoch=1, edge="e1", pts=pts))
+                seq += 1
+                time.sleep(0.05)
+
+        sender = threading.Thread(target=stream, daemon=True)
+        sender.start()
+        try:
+            def shed() -> bool:
+                service.tick()
+                return service.status().get("shed", 0) == 1
+
+            wait_for(shed, 10, "a robot shed")
+            wait_for(lambda: any(a.detail == "shed: over capacity" for a in acks["r2"].items), 5,
+                     "r2 refused")
+        finally:
+            stop.set()
+            sender.join(5)
+        assert not any(a.status == "refused" for a in acks["r1"].items)  # the oldest is kept
+        assert service.status()["capacity"] == 1
+        assert service.fleet.attached["r2"].shed
+        assert attach(s, "r3", 1).detail == "full: 2 of 1 robots"
+        def shed_gone() -> bool:
+            service.tick()
+            return "r2" not in service.robots
+
+        wait_for(shed_gone, 5, "the shed robot's session gone")
+        wait_for(lambda: balanced(service), 5, "every sample counted")

@@ -1,0 +1,75 @@
+"""A mapper continuing a robot's trajectory: seeded from a checkpoint, with the robot's own poses
+in its trajectory, and, for a robot coming back to a mapper it had, re-seeded only by a newer
+checkpoint while its global map stays."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from zoffload.edge.recipe import MapperRecipe
+from zoffload.mapping.checkpoint import take_checkpoint
+from zoffload.mapping.mapper import RobotMapper
+from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol import wire
+from zoffload.sources.simulated import SimulatedSource
+
+pytest.importorskip("kiss_icp")
+SRC = SimulatedSource()
+SCANS = [voxel_downsample(SRC.read(i).points, 0.05) for i in range(40)]
+
+
+def mapper() -> RobotMapper:
+    return RobotMapper(voxel_size=0.5, max_range=SRC.max_range)
+
+
+def test_a_fresh_mapper_continues_the_checkpoint_and_the_robots_own_poses() -> None:
+    a = mapper()
+    regs = [a.register(i, SCANS[i]) for i in range(30)]
+    cp = take_checkpoint(a.odometry, "r1", "e1", epoch=1, seq=29, stamp=0.0)
+    b = mapper()
+    # The robot registered 30..32 itself (here: the original mapper's poses stand in for them)
+    local = [a.register(i, SCANS[i]).pose for i in range(30, 33)]
+    assert b.continue_from(cp, np.arange(30, 33), np.asarray(local))
+    assert b.seqs == [30, 31, 32] and b.last_seq == 32 and b.registered == 0
+    np.testing.assert_allclose(b.odometry.last_pose, local[-1])
+    for i in range(33, 40):
+        ra, rb = a.register(i, SCANS[i]), b.register(i, SCANS[i])
+    assert np.linalg.norm(ra.pose[:3, 3] - rb.pose[:3, 3]) < 0.05  # same frame, same place
+    assert np.linalg.norm(rb.pose[:3, 3]) > 2.0 and regs[-1].pose[0, 3] != 0  # not back at the origin
+    seqs, poses = b.trajectory()
+    assert seqs.tolist() == list(range(30, 40)) and b.registered == 7
+
+
+def test_a_mapper_with_history_is_reseeded_only_by_a_newer_checkpoint() -> None:
+    a = mapper()
+    for i in range(20):
+        a.register(i, SCANS[i])
+    old = take_checkpoint(a.odometry, "r1", "e1", epoch=1, seq=10, stamp=0.0)
+    pose = a.odometry.last_pose.copy()
+    points = a.map_points
+    assert not a.continue_from(old, np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # older: ignored
+    np.testing.assert_allclose(a.odometry.last_pose, pose)
+    # Elsewhere the robot went on to scan 30; it comes back with that checkpoint
+    other = mapper()
+    for i in range(31):
+        other.register(i, SCANS[i])
+    newer = take_checkpoint(other.odometry, "r1", "e2", epoch=2, seq=30, stamp=0.0)
+    assert a.continue_from(newer, np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+    assert a.last_seq == 30 and a.map_points == points and len(a.seqs) == 20  # global map, trajectory kept
+    for i in range(31, 36):
+        ra, ro = a.register(i, SCANS[i]), other.register(i, SCANS[i])
+    assert np.linalg.norm(ra.pose[:3, 3] - ro.pose[:3, 3]) < 0.05
+
+
+def test_the_bounded_mapper_checkpoints_after_its_last_scan() -> None:
+    scan = wire.Scan(robot="r1", seq=0, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.07,
+                     max_range=SRC.max_range, n_raw=0, points=np.zeros((0, 3), np.float32))
+    m = MapperRecipe()(scan)
+    assert m.checkpoint("r1", "e1", 3, 5.0) is None  # nothing registered yet
+    for i in range(5):
+        m.register(i, SCANS[i])
+    cp = m.checkpoint("r1", "e1", 3, 5.0, resolution=1.0, final=True)
+    assert cp is not None and cp.seq == 4 and cp.final and cp.epoch == 3 and cp.edge == "e1"
+    np.testing.assert_allclose(cp.pose, m.inner.poses[-1])
+    assert m.scans == 5

@@ -1,0 +1,133 @@
+"""The robot's fleet decisions without Zenoh: when it moves, which acks and checkpoints count,
+what the next attach carries, the failover timings."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from zoffload.protocol import wire
+from zoffload.robot.fleet import RETRY_MIN, FleetState
+from zoffload.robot.odometry import Snapshot
+
+
+def checkpoint(edge: str, epoch: int, seq: int, final: bool = False, robot: str = "r1") -> wire.Checkpoint:
+    return wire.Checkpoint(robot=robot, edge=edge, epoch=epoch, seq=seq, stamp=0.0, voxel_size=0.4,
+                           max_range=40.0, min_range=0.0, max_points_per_voxel=20, pose=np.eye(4),
+                           delta=np.eye(4), points=np.zeros((0, 3), np.float32), final=final)
+
+
+def reply(edge: str, epoch: int, accepted: bool = True, detail: str = "") -> wire.AttachReply:
+    return wire.AttachReply(robot="r1", edge=edge, epoch=epoch, accepted=accepted, detail=detail,
+                            robots=1, capacity=4)
+
+
+def attached(f: FleetState, now: float = 0.0) -> tuple[str, int]:
+    ask = f.next_attach(now, int(now * 1000) + 1000)
+    assert ask is not None
+    assert f.attach_result(*ask, reply(*ask), now) == "attached"
+    assert f.target() == ask
+    return ask
+
+
+def test_attach_then_silence_moves_and_the_failover_is_timed() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    assert f.next_attach(0.0, 1000) is None  # nobody to ask
+    f.edge_present("e1")
+    f.edge_present("e2")
+    edge, epoch = attached(f)
+    assert f.next_attach(0.1, 1100) is None  # attached: nothing to ask
+    f.on_sent(1.0)
+    assert not f.silent(1.4)
+    assert not f.on_ack(edge, epoch, "ok", 1.45, in_flight=1)  # answered: the clock restarts
+    assert not f.silent(2.0)  # the scan still in flight went before that ack: lost alone, maybe
+    f.no_scans_in_flight()  # it expired
+    assert not f.silent(3.0)
+    f.on_sent(3.0)
+    assert not f.silent(3.5)
+    assert f.silent(3.6) and f.target() is None and f.moves["silence"] == 1
+    other = "e2" if edge == "e1" else "e1"
+    ask = f.next_attach(3.6, 4000)
+    assert ask is not None and ask[0] == other and ask[1] > epoch  # the silent edge is asked last
+    assert f.attach_result(*ask, reply(*ask), 3.7) == "attached"
+    f.on_sent(3.8)
+    f.on_ack(other, ask[1], "ok", 3.9, in_flight=1)  # one more in flight, sent before this ack
+    assert not f.silent(4.85) and f.silent(4.95)  # no ack at all for twice failover_after
+    m = f.metrics()
+    # silent at 3.6, first ok ack from the next edge at 3.9
+    assert len(m["failover_s"]) == 1 and abs(m["failover_s"][0] - 0.3) < 1e-9
+    assert m["moves"] == {"silence": 2} and m["attaches"] == 2 and m["failovers"] == 1
+    assert m["per_edge"] == {edge: 1, other: 1}
+
+
+def test_token_drain_final_checkpoint_and_refusal_each_move_the_robot() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    for e in ("e1", "e2", "e3"):
+        f.edge_present(e)
+    edge, epoch = attached(f)
+    assert not f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 0.0}, 1.0)
+    assert f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 1.0}, 1.0)
+    assert f.target() is None and f.moves["draining"] == 1
+    edge, epoch = attached(f, 2.0)
+    assert f.on_checkpoint(checkpoint(edge, epoch, 5, final=True), 3.0) == "final" and f.target() is None
+    edge, epoch = attached(f, 4.0)
+    assert not f.on_ack(edge, epoch - 1, "refused", 5.0, 0)  # another epoch's refusal: not ours
+    assert f.on_ack(edge, epoch, "refused", 5.0, 0) and f.target() is None
+    # e1..e3 all left or refused us: the remaining one is the only candidate
+    assert f.moves == {"draining": 1, "final": 1, "refused": 1}
+    f.edge_present("e4")
+    edge, epoch = attached(f, 5.1)
+    assert f.edge_gone(edge, 6.0) and f.moves["token"] == 1 and f.target() is None
+    assert not f.edge_gone("nobody", 6.0)
+
+
+def test_only_the_current_assignment_gives_checkpoints_and_the_newest_wins() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    f.edge_present("e1")
+    edge, epoch = attached(f)
+    assert f.on_checkpoint(checkpoint(edge, epoch - 1, 50), 1.0) == "stale"
+    assert f.on_checkpoint(checkpoint("e9", epoch, 50), 1.0) == "stale"
+    assert f.on_checkpoint(checkpoint(edge, epoch, 50, robot="r2"), 1.0) == "stale"
+    assert f.on_checkpoint(checkpoint(edge, epoch, 20), 1.0) == "kept"
+    assert f.on_checkpoint(checkpoint(edge, epoch, 10), 1.0) == "older"
+    assert f.checkpoint is not None and f.checkpoint.seq == 20
+    assert f.current(edge, epoch) and not f.current(edge, epoch + 1) and not f.current("e9", epoch)
+
+
+def test_the_attach_carries_the_freshest_checkpoint_and_the_local_poses_after_it() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    f.edge_present("e1")
+    edge, epoch = attached(f)
+    f.on_checkpoint(checkpoint(edge, epoch, 20), 1.0)
+    poses = np.repeat(np.eye(4)[None], 6, axis=0)
+    seqs = np.arange(25, 31, dtype=np.int64)
+    mine = checkpoint("", 0, 27)
+    cp, s, p = f.attach_payload(Snapshot(mine, seqs, poses))
+    assert cp is mine and list(s) == [28, 29, 30] and p.shape == (3, 4, 4)
+    cp, s, _ = f.attach_payload(Snapshot(checkpoint("", 0, 10), seqs, poses))
+    assert cp is not None and cp.edge == edge and list(s) == list(range(25, 31))  # the edge's is fresher
+    cp, s, _ = f.attach_payload(None)
+    assert cp is not None and cp.seq == 20 and len(s) == 0
+
+
+def test_unanswered_or_refused_attaches_back_off() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    f.edge_present("e1")
+    ask = f.next_attach(0.0, 1000)
+    assert ask is not None
+    assert f.attach_result(*ask, None, 0.0) == "no_answer"
+    assert f.next_attach(RETRY_MIN / 2, 1001) is None  # backing off
+    again = f.next_attach(RETRY_MIN + 0.01, 1002)
+    assert again is not None and again[1] > ask[1]
+    assert f.attach_result(*again, None, 0.3) == "no_answer"
+    assert f.next_attach(0.3 + RETRY_MIN + 0.01, 1003) is None  # the backoff doubled
+    third = f.next_attach(0.3 + 2 * RETRY_MIN + 0.01, 1004)
+    assert third is not None
+    assert f.attach_result(*third, reply(third[0], third[1] + 1), 1.0) == "stale"  # not our epoch
+    fourth = f.next_attach(5.0, 5000)
+    assert fourth is not None
+    full = reply(*fourth, accepted=False, detail="full: 4 of 4 robots")
+    assert f.attach_result(*fourth, full, 5.0) == "refused"
+    assert f.next_attach(5.1, 5100) is None  # refused: not asked again for a while
+    m = f.metrics()
+    assert m["attach_no_answer"] == 2 and m["attach_refused"] == 1 and m["attach_stale"] == 1
+    assert m["attaches"] == 0 and m["edge"] == ""

@@ -1,0 +1,255 @@
+"""The edge's side of the fleet protocol (docs: /work/notes/fleet_contract.md, sections 1-6), pure:
+no Zenoh, no threads, no clock (``now`` is passed in). The mapping service holds one ``Fleet`` and
+calls it under its own lock.
+
+* **Attach table.** Each attached robot has the epoch it attached under; an attach is accepted only
+  with a larger epoch than the one held (held epochs outlive the robot's session, bounded), while
+  the edge is not draining and has room (``robots`` counts map sessions; a robot that already has
+  one does not count against itself).
+* **Scans.** ``route`` sorts a scan by its (edge, epoch): another edge's (counted, nothing else),
+  mapped, or refused with the ack detail and the drop reason.
+* **Shedding.** The workers' busy seconds and the overload drops are sampled about once a second;
+  over the last ``window`` seconds, a busy share above ``shed_load`` with overload drops and more
+  than one attached robot sheds the newest one (at most one per ``window``), and the announced
+  capacity drops to the robots kept for ``hold`` seconds.
+* **Drain and final checkpoints.** Draining (SIGTERM) or shedding asks a final checkpoint of the
+  robot; the edge's drain is over when every attached robot has moved (its scans carry another
+  edge) or has been quiet for ``quiet`` seconds with no final checkpoint still owed.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+from zoffload.protocol import wire
+
+EPOCHS_KEPT = 4096  # robots whose last epoch is remembered after their session went
+
+# What ``route`` decides for a scan
+OTHER, MAP, REFUSE = "other_edge", "map", "refuse"
+
+
+@dataclass
+class Attached:
+    """One robot attached to this edge."""
+
+    epoch: int
+    order: int  # attach order: the newest is shed first
+    last_scan: float  # edge monotonic clock: attach time, then its last scan under this epoch
+    final: str = ""  # "" no final checkpoint asked, "pending", "sent"
+    shed: bool = False
+    moved: bool = False  # its scans now name another edge
+
+
+@dataclass(frozen=True)
+class Route:
+    action: str  # OTHER, MAP or REFUSE
+    detail: str = ""  # the refusal ack's detail
+    reason: str = ""  # the drop's reason
+
+
+def check_attach(attach: wire.Attach, robot: str, limits: wire.Limits = wire.DEFAULT_LIMITS
+                 ) -> tuple[wire.Checkpoint | None, str]:
+    """The attach's checkpoint (None: a fresh start) and "" when it is usable, else the reason to
+    refuse it (``bad checkpoint: ...``)."""
+    cp: wire.Checkpoint | None = None
+    if attach.checkpoint:
+        try:
+            cp = wire.decode(attach.checkpoint, expect=wire.Checkpoint, limits=limits)
+        except wire.WireError as exc:
+            return None, f"bad checkpoint: {str(exc)[:200]}"
+        if cp.robot != robot:
+            return None, f"bad checkpoint: made for robot {cp.robot!r}"
+        if not _rigid(cp.pose[None]) or not _rigid(cp.delta[None]):
+            return None, "bad checkpoint: pose or delta is not a rigid transform"
+    seqs = np.asarray(attach.local_seqs, np.int64)
+    if len(seqs):
+        if np.any(np.diff(seqs) <= 0):
+            return None, "bad checkpoint: local seqs are not ascending"
+        if cp is not None and seqs[0] <= cp.seq:
+            return None, f"bad checkpoint: local seq {int(seqs[0])} not after the checkpoint's {cp.seq}"
+        if not _rigid(np.asarray(attach.local_poses, np.float64)):
+            return None, "bad checkpoint: a local pose is not a rigid transform"
+    return cp, ""
+
+
+def _rigid(poses: np.ndarray) -> bool:
+    """Whether every 4x4 is a rigid transform (a tolerance for float32 round trips)."""
+    if len(poses) == 0:
+        return True
+    rot = poses[:, :3, :3]
+    ortho = np.einsum("nij,nkj->nik", rot, rot) - np.eye(3)
+    return bool(np.allclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0]) and np.abs(ortho).max() < 1e-3
+                and np.abs(poses[:, :3, 3]).max() < 1e7)
+
+
+class Fleet:
+    def __init__(self, edge_id: str, capacity: int, require_attach: bool = False, shed: bool = True,
+                 shed_load: float = 0.9, window: float = 5.0, hold: float = 30.0, quiet: float = 1.0) -> None:
+        self.edge_id = edge_id
+        self.capacity = capacity
+        self.require_attach = require_attach
+        self.shed_enabled = shed
+        self.shed_load = shed_load
+        self.window = window
+        self.hold = hold
+        self.quiet = quiet
+        self.attached: dict[str, Attached] = {}
+        self.epochs: OrderedDict[str, int] = OrderedDict()  # the last epoch each robot attached under
+        self.draining = False
+        self.drain_started: float | None = None
+        self._order = 0
+        self._samples: deque[tuple[float, float, int]] = deque()  # (now, busy seconds, overload drops)
+        self._last_shed = -float("inf")
+        self._held_capacity: tuple[int, float] | None = None  # (capacity, until)
+
+    # Capacity
+    def effective_capacity(self, now: float) -> int:
+        if self._held_capacity is not None:
+            cap, until = self._held_capacity
+            if now < until:
+                return min(self.capacity, cap)
+            self._held_capacity = None
+        return self.capacity
+
+    # Attach
+    def decide(self, robot: str, epoch: int, robots: int, has_session: bool, now: float) -> str:
+        """"" to accept ``robot``'s attach under ``epoch``, else the refusal's detail. ``robots``:
+        the map sessions on the edge now. Admission is the caller's last check."""
+        if self.draining:
+            return "draining"
+        if epoch <= self.epochs.get(robot, 0):
+            return "stale epoch"
+        capacity = self.effective_capacity(now)
+        others = robots - (1 if has_session else 0)
+        if others >= capacity:
+            return f"full: {robots} of {capacity} robots"
+        return ""
+
+    def attach(self, robot: str, epoch: int, now: float) -> None:
+        self._order += 1
+        self.attached[robot] = Attached(epoch, self._order, now)
+        self.epochs.pop(robot, None)
+        self.epochs[robot] = epoch
+        while len(self.epochs) > EPOCHS_KEPT:
+            self.epochs.popitem(last=False)
+
+    def forget(self, robot: str) -> None:
+        """The robot's session went (evicted): it is no longer attached (its epoch is kept)."""
+        self.attached.pop(robot, None)
+
+    # Scans
+    def route(self, robot: str, edge: str, epoch: int, now: float) -> Route:
+        if edge and edge != self.edge_id:
+            entry = self.attached.get(robot)
+            if entry is not None:
+                entry.moved = True
+            return Route(OTHER)
+        if not edge and epoch == 0:
+            if self.require_attach:
+                return Route(REFUSE, "attach first", "attach_first")
+            return Route(MAP)
+        entry = self.attached.get(robot)
+        if entry is None or entry.epoch != epoch or not edge:
+            detail = "draining" if self.draining else f"not attached (epoch {epoch})"
+            return Route(REFUSE, detail, "stale_epoch")
+        if entry.shed and entry.final == "sent":
+            return Route(REFUSE, "shed: over capacity", "shed")
+        entry.last_scan = now
+        entry.moved = False
+        return Route(MAP)
+
+    # Final checkpoints
+    def final_sent(self, robot: str) -> None:
+        entry = self.attached.get(robot)
+        if entry is not None:
+            entry.final = "sent"
+
+    def begin_drain(self, now: float) -> list[str]:
+        """Start draining; the attached robots, each now owed a final checkpoint."""
+        if not self.draining:
+            self.draining = True
+            self.drain_started = now
+        owed = [r for r, e in self.attached.items() if not e.final]
+        for r in owed:
+            self.attached[r].final = "pending"
+        return owed
+
+    def drained(self, now: float) -> bool:
+        """Whether every attached robot has moved or gone quiet with its final checkpoint sent."""
+        return all(e.moved or (e.final != "pending" and now - e.last_scan >= self.quiet)
+                   for e in self.attached.values())
+
+    # Shedding
+    def sample(self, now: float, busy: float, overload_drops: int) -> None:
+        """The workers' busy seconds and overload drops so far (cumulative), about once a second."""
+        self._samples.append((now, busy, overload_drops))
+        while len(self._samples) > 2 and now - self._samples[1][0] >= self.window:
+            self._samples.popleft()
+
+    def busy_share(self, workers: int) -> float:
+        """The workers' busy share over the sampled window (0 before two samples)."""
+        if len(self._samples) < 2 or workers <= 0:
+            return 0.0
+        (t0, b0, _), (t1, b1, _) = self._samples[0], self._samples[-1]
+        return 0.0 if t1 <= t0 else max(0.0, (b1 - b0) / ((t1 - t0) * workers))
+
+    def overloaded(self) -> bool:
+        return len(self._samples) >= 2 and self._samples[-1][2] > self._samples[0][2]
+
+    def to_shed(self, now: float, workers: int) -> str | None:
+        """The robot to shed now (it is then marked shed and owed a final checkpoint), or None."""
+        kept = [(e.order, r) for r, e in self.attached.items() if not e.shed]
+        if (not self.shed_enabled or self.draining or len(kept) <= 1 or now - self._last_shed < self.window
+                or not self.overloaded() or self.busy_share(workers) <= self.shed_load):
+            return None
+        robot = max(kept)[1]
+        entry = self.attached[robot]
+        entry.shed = True
+        if entry.final != "sent":
+            entry.final = "pending"
+        self._last_shed = now
+        self._held_capacity = (len(kept) - 1, now + self.hold)
+        return robot
+
+    def shed_gone(self, now: float) -> list[str]:
+        """Shed robots that have moved, or gone quiet after their final checkpoint: their sessions
+        can go."""
+        return [r for r, e in self.attached.items()
+                if e.shed and e.final == "sent" and (e.moved or now - e.last_scan >= self.quiet)]
+
+    def status(self, now: float) -> dict[str, float]:
+        return {"capacity": float(self.effective_capacity(now)), "draining": float(self.draining),
+                "attached": float(len(self.attached))}
+
+
+def peek_route(payload: bytes) -> tuple[str, int] | None:
+    """A scan's ``edge`` and ``epoch`` read without decoding it (its arrays are skipped, not
+    copied), so another edge's scans cost the edge almost nothing; None when the payload does not
+    look like a scan (the full decode then counts it)."""
+    try:
+        unpacker = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1), strict_map_key=True,
+                                    max_ext_len=0)
+        unpacker.feed(payload)
+        edge: object = ""
+        epoch: object = 0
+        for _ in range(min(unpacker.read_map_header(), 64)):
+            key = unpacker.unpack()
+            if key == "edge":
+                edge = unpacker.unpack()
+            elif key == "epoch":
+                epoch = unpacker.unpack()
+            elif key == "t":
+                if unpacker.unpack() != wire.Scan.TYPE:
+                    return None
+            else:
+                unpacker.skip()
+    except Exception:  # msgpack raises several unrelated types for broken input
+        return None
+    if not isinstance(edge, str) or not isinstance(epoch, int) or isinstance(epoch, bool):
+        return None
+    return edge, epoch

@@ -1,0 +1,240 @@
+"""The fleet experiment's figures (pure): per robot from its ``robot_metrics.json`` and
+``robot_scans.csv``, per run, then mean ± sd over repeats, and the markdown report.
+
+The robot's files are read defensively: the ``fleet`` section of the metrics and the ``edge`` /
+``pose_source`` columns exist only with the attach protocol; without them the figures are derived
+from the per-scan rows (a scan has a pose when its edge acked it or the robot registered it).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+POSED = ("edge", "local")
+
+
+def _num(x: Any) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _sorted_rows(rows: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    return sorted((r for r in rows if _num(r.get("seq")) is not None), key=lambda r: int(float(r["seq"])))
+
+
+def has_pose(row: Mapping[str, Any]) -> bool:
+    return row.get("status") in ("acked", "local") or row.get("pose_source") in POSED
+
+
+def pose_gaps(rows: Iterable[Mapping[str, Any]], period: float) -> tuple[int, float]:
+    """(scans, seconds) of the longest run of consecutive produced scans without any pose, after
+    the first pose (a robot that never had one is not "without" it yet: the start-up is separate).
+    Seconds: capture time of the run's last scan − its first + one period."""
+    best = (0, 0.0)
+    run: list[Mapping[str, Any]] = []
+    seen_pose = False
+    for r in [*_sorted_rows(rows), {"status": "acked"}]:  # a sentinel closes the last run
+        if has_pose(r):
+            if seen_pose and len(run) > best[0]:
+                t0, t1 = _num(run[0].get("capture_stamp")), _num(run[-1].get("capture_stamp"))
+                secs = (t1 - t0 + period) if t0 is not None and t1 is not None else len(run) * period
+                best = (len(run), secs)
+            seen_pose, run = True, []
+        elif seen_pose:
+            run.append(r)
+    return best
+
+
+def on_time_share(rows: Iterable[Mapping[str, Any]], period: float, warmup: int = 0
+                  ) -> tuple[float | None, int]:
+    """(share of produced scans acked within one period on the robot's clock, scans not acked),
+    over the scans after the first ``warmup``."""
+    body = _sorted_rows(rows)[warmup:]
+    if not body:
+        return None, 0
+    on_time = sum(r.get("status") == "acked" and (_num(r.get("rtt")) or math.inf) <= period for r in body)
+    return on_time / len(body), sum(r.get("status") != "acked" for r in body)
+
+
+def _median_of(x: Any) -> float | None:
+    """A number, or the median (else mean) of a ``{"median": .., "mean": ..}`` section."""
+    if isinstance(x, Mapping):
+        return _num(x.get("median", x.get("mean")))
+    return _num(x)
+
+
+def _floats(x: Any) -> list[float]:
+    return [v for v in (_num(i) for i in (x if isinstance(x, (list, tuple)) else [])) if v is not None]
+
+
+def robot_figures(metrics: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], period: float,
+                  ate: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """One robot's figures of one run."""
+    balance = metrics.get("balance") or {}
+    fleet = metrics.get("fleet") or {}
+    gap_scans, gap_s = pose_gaps(rows, period)
+    per_edge = fleet.get("per_edge") or dict(Counter(
+        str(r.get("edge")) for r in rows if r.get("status") == "acked" and r.get("edge")))
+    on_time, _ = on_time_share(rows, period)
+    return {
+        "produced": int(balance.get("produced", len(rows))),
+        "acked": int(balance.get("acked", 0)),
+        "local": int(balance.get("local", 0)),
+        "lost": int(balance.get("lost", 0)) + int(balance.get("late", 0)),
+        "edge_dropped": int(balance.get("edge_dropped", 0)) + int(balance.get("edge_error", 0)),
+        "edge_refused": int(balance.get("edge_refused", 0)),
+        "dropped_source": int(sum((metrics.get("dropped_source") or {}).values())),
+        "balanced": bool(metrics.get("balanced", False)),
+        "on_time": on_time,
+        "attaches": fleet.get("attaches"),
+        "failovers": fleet.get("failovers"),
+        "failover_s": _floats(fleet.get("failover_s")),
+        "switch_jumps_m": _floats(fleet.get("switch_jumps_m")),
+        "local_scans": fleet.get("local_scans"),
+        "local_cpu_ms_per_scan": _median_of(fleet.get("local_cpu_ms_per_scan")),
+        "max_pose_gap_scans": int(fleet.get("max_pose_gap_scans", gap_scans)),
+        "max_pose_gap_s": _num(fleet.get("max_pose_gap_s")) if "max_pose_gap_s" in fleet else gap_s,
+        "pose_gap_from_rows": [gap_scans, gap_s],  # cross-check of the robot's own figure
+        "per_edge": dict(per_edge),
+        "cpu_ms_per_scan": _num((metrics.get("cpu") or {}).get("process_ms_per_scan")),
+        "trajectory_error": dict(ate) if ate else None,
+    }
+
+
+def _mean(xs: Iterable[float | None]) -> float | None:
+    vals = [x for x in xs if x is not None]
+    return statistics.fmean(vals) if vals else None
+
+
+def _max(xs: Iterable[float | None]) -> float | None:
+    vals = [x for x in xs if x is not None]
+    return max(vals) if vals else None
+
+
+def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mapping[str, Any]]
+                ) -> dict[str, Any]:
+    """One run's scalars (what is averaged over repeats); ``cpu``: process name -> its figures
+    (``cores``: mean cores over its life), names starting with edge/robot/router/link."""
+    rs = list(robots.values())
+    failover = [f for r in rs for f in r.get("failover_s", [])]
+    jumps = [j for r in rs for j in r.get("switch_jumps_m", [])]
+
+    def cores(kind: str) -> float | None:
+        return _mean(_num(c.get("cores")) for name, c in cpu.items() if name.startswith(kind))
+
+    return {
+        "robots": len(rs),
+        "balanced_all": all(r.get("balanced") for r in rs),
+        **{k: sum(int(r.get(k) or 0) for r in rs)
+           for k in ("produced", "acked", "local", "lost", "edge_dropped", "edge_refused", "dropped_source")},
+        "ate_rmse_mean": _mean(_num((r.get("trajectory_error") or {}).get("ate_rmse")) for r in rs),
+        "ate_rmse_max": _max(_num((r.get("trajectory_error") or {}).get("ate_rmse")) for r in rs),
+        "max_pose_gap_scans": _max(float(r["max_pose_gap_scans"]) for r in rs) if rs else None,
+        "max_pose_gap_s": _max(_num(r.get("max_pose_gap_s")) for r in rs),
+        "failovers": len(failover),
+        "failover_s_mean": _mean(failover),
+        "failover_s_max": _max(failover),
+        "switch_jump_m_mean": _mean(jumps),
+        "switch_jump_m_max": _max(jumps),
+        "local_cpu_ms_per_scan": _mean(_num(r.get("local_cpu_ms_per_scan")) for r in rs),
+        "robot_cpu_ms_per_scan": _mean(_num(r.get("cpu_ms_per_scan")) for r in rs),
+        "on_time_mean": _mean(_num(r.get("on_time")) for r in rs),
+        "edge_cores": cores("edge"),
+        "robot_cores": cores("robot"),
+        "router_cores": cores("router"),
+    }
+
+
+def aggregate(summaries: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float | int | None]]:
+    """Mean ± sample sd over repeats of every numeric figure (booleans: the share that hold)."""
+    keys = dict.fromkeys(k for s in summaries for k in s)
+    out: dict[str, dict[str, float | int | None]] = {}
+    for k in keys:
+        vals = [float(v) for v in (s.get(k) for s in summaries)
+                if isinstance(v, (int, float)) and math.isfinite(float(v))]
+        if vals:
+            out[k] = {"mean": statistics.fmean(vals), "sd": statistics.stdev(vals) if len(vals) > 1 else None,
+                      "n": len(vals)}
+    return out
+
+
+def ate_ratio(disturbed: Mapping[str, Any], baseline: Mapping[str, Any]) -> float | None:
+    d = (disturbed.get("ate_rmse_mean") or {}).get("mean")
+    b = (baseline.get("ate_rmse_mean") or {}).get("mean")
+    return d / b if d is not None and b else None
+
+
+def _cell(agg: Mapping[str, Any], key: str, spec: str) -> str:
+    a = agg.get(key)
+    if not a or a.get("mean") is None:
+        return "–"
+    text = format(a["mean"], spec)
+    return text + (f" ± {format(a['sd'], spec)}" if a.get("sd") is not None else "")
+
+
+ROWS = (
+    ("scans produced (all robots)", "produced", ".0f"),
+    ("acked by an edge", "acked", ".0f"),
+    ("registered locally", "local", ".0f"),
+    ("lost (+ late)", "lost", ".0f"),
+    ("dropped at the source", "dropped_source", ".0f"),
+    ("ledgers balanced (share of runs)", "balanced_all", ".2f"),
+    ("ATE RMSE, mean over robots (m)", "ate_rmse_mean", ".3f"),
+    ("ATE RMSE, worst robot (m)", "ate_rmse_max", ".3f"),
+    ("longest pose gap (scans)", "max_pose_gap_scans", ".1f"),
+    ("longest pose gap (s)", "max_pose_gap_s", ".2f"),
+    ("failovers", "failovers", ".1f"),
+    ("failover time, mean (s)", "failover_s_mean", ".2f"),
+    ("failover time, max (s)", "failover_s_max", ".2f"),
+    ("switch jump, mean (m)", "switch_jump_m_mean", ".3f"),
+    ("switch jump, max (m)", "switch_jump_m_max", ".3f"),
+    ("local odometry CPU (ms/scan)", "local_cpu_ms_per_scan", ".1f"),
+    ("robot process CPU (ms/scan)", "robot_cpu_ms_per_scan", ".1f"),
+    ("on time (acked ≤ 1 period)", "on_time_mean", ".3f"),
+    ("edge process CPU (cores)", "edge_cores", ".2f"), ("robot process CPU (cores)", "robot_cores", ".2f"),
+    ("router CPU (cores)", "router_cores", ".2f"),
+)
+
+
+def markdown(title: str, setup: str, disturbed: Mapping[str, Any], baseline: Mapping[str, Any] | None,
+             per_robot: Mapping[str, Mapping[str, Any]], ratio: float | None, kill_count: int) -> str:
+    """The report: the run-level figures (with the baseline beside them), the ATE ratio against
+    the issue's target, then one line per robot."""
+    head = "| figure | scripted runs |" + (" baseline (no events) |" if baseline else "")
+    lines = [f"# {title}", "", setup, "", head, "|---|---|" + ("---|" if baseline else "")]
+    for label, key, spec in ROWS:
+        lines.append(f"| {label} | {_cell(disturbed, key, spec)} |"
+                     + (f" {_cell(baseline, key, spec)} |" if baseline else ""))
+    lines.append("")
+    if ratio is not None:
+        verdict = (("target ≤ 1.2× with 5 kills: " + ("met" if ratio <= 1.2 else "missed"))
+                   if kill_count >= 5 else f"{kill_count} kill(s) scripted; the target, ≤ 1.2×, is for 5")
+        lines += [f"ATE ratio scripted / baseline: **{ratio:.2f}×** ({verdict})", ""]
+    lines += ["## Per robot (scripted runs)", "",
+              "| robot | produced | acked | local | lost | balanced | ATE (m) | max gap (scans) "
+              "| failover (s) | switch jump (m) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for robot, agg in per_robot.items():
+        lines.append(f"| {robot} | " + " | ".join(_cell(agg, k, s) for k, s in (
+            ("produced", ".0f"), ("acked", ".0f"), ("local", ".0f"), ("lost", ".0f"), ("balanced", ".2f"),
+            ("ate_rmse", ".3f"), ("max_pose_gap_scans", ".1f"), ("failover_s_mean", ".2f"),
+            ("switch_jump_m_max", ".3f"))) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def robot_scalars(fig: Mapping[str, Any]) -> dict[str, Any]:
+    """A robot's figures reduced to scalars, for its mean ± sd over repeats."""
+    fo, jumps = fig.get("failover_s") or [], fig.get("switch_jumps_m") or []
+    return {
+        **{k: fig.get(k) for k in ("produced", "acked", "local", "lost", "max_pose_gap_scans",
+                                   "max_pose_gap_s", "on_time", "cpu_ms_per_scan", "local_cpu_ms_per_scan")},
+        "balanced": 1.0 if fig.get("balanced") else 0.0,
+        "ate_rmse": _num((fig.get("trajectory_error") or {}).get("ate_rmse")),
+        "failover_s_mean": _mean(fo), "switch_jump_m_max": _max(jumps),
+    }

@@ -1,0 +1,371 @@
+"""The robot in a fleet of edges: which edge maps it, when it moves, what it hands the next one.
+
+Inputs:  the edges' liveliness (the server's ``EdgePresence``), ``<ns>/status/edge/*``
+         (wire.Status: capacity, robots, draining), ``<ns>/data/<robot>/checkpoint``
+         (wire.Checkpoint), the acks the scan pipeline books (told here).
+Outputs: attach queries ``<ns>/ctrl/<robot>/attach/<edge>`` (wire.Attach → wire.AttachReply), on
+         the fleet thread only (never in a Zenoh callback: a query waits up to attach_timeout).
+
+``FleetState`` is the pure part (no Zenoh, the clock passed in), tested directly: the
+``Assignment`` (robot/assign.py), the latest checkpoint of the robot's edge, the ack-silence
+detector, the failover timings. ``FleetLink`` wires it to Zenoh and runs the attaches.
+
+The robot moves when its edge's token goes, its status says draining, it sends a final
+checkpoint, it refuses a scan under the current epoch, or it leaves scans unanswered for
+``failover_after`` seconds. Attaches that get no answer at all (an edge without the attach
+protocol, a lost query) are retried with a backoff doubling from 0.2 s to 5 s.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from zoffload.protocol import wire
+from zoffload.protocol.keys import ID, Keys
+from zoffload.robot.assign import ATTACHED, UNASSIGNED, Assignment
+from zoffload.robot.odometry import Snapshot
+from zoffload.robot.presence import EdgePresence
+from zoffload.runtime.drops import Drops
+from zoffload.runtime.session import undeclare
+
+log = logging.getLogger("zoffload.robot.fleet")
+
+RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
+MAX_TIMINGS = 10_000  # failover times kept
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """What an attach tells the edge about the robot's scans."""
+
+    max_range: float
+    voxel_max: float
+    rate_hz: float
+
+
+class FleetState:
+    """The robot's fleet decisions, pure and thread-safe (one lock)."""
+
+    def __init__(self, robot: str, failover_after: float, refusal_backoff: float = 5.0) -> None:
+        self.robot = robot
+        self.failover_after = failover_after
+        self.assignment = Assignment(robot, refusal_backoff=refusal_backoff)
+        self.checkpoint: wire.Checkpoint | None = None  # the newest from the robot's edge
+        self.moves: Counter[str] = Counter()  # why the robot left an edge
+        self.counters: Counter[str] = Counter()
+        self.per_edge: Counter[str] = Counter()  # scans acked "ok" by each edge
+        self.failover_s: list[float] = []
+        self._lost_at: float | None = None  # when the robot last lost its edge (no ok ack since)
+        self._waiting_since: float | None = None  # the oldest scan sent after the last ack
+        self._last_ack: float | None = None  # of the current assignment (or its first scan sent)
+        self._in_flight = False
+        self._retry = RETRY_MIN
+        self._retry_at = -math.inf
+        self._lock = threading.RLock()
+
+    # What the network says
+    def edge_present(self, edge: str) -> None:
+        with self._lock:
+            self.assignment.edge_present(edge)
+
+    def edge_gone(self, edge: str, now: float) -> bool:
+        with self._lock:
+            was = self.assignment.state == ATTACHED
+            return self._moved("token", now, was) if self.assignment.edge_gone(edge) else False
+
+    def edge_status(self, edge: str, values: dict[str, float], now: float) -> bool:
+        with self._lock:
+            was = self.assignment.state == ATTACHED
+            moved = self.assignment.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
+                                                values.get("draining", 0.0) > 0.5)
+            return self._moved("draining", now, was) if moved else False
+
+    def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
+        """Keep the newest checkpoint of the current assignment; returns "kept", "stale" (another
+        edge or epoch), "older", or "final" (kept, and the robot moves)."""
+        with self._lock:
+            if cp.robot != self.robot or not self.assignment.current(cp.edge, cp.epoch):
+                self.counters["checkpoints_stale"] += 1
+                return "stale"
+            if self.checkpoint is not None and cp.seq < self.checkpoint.seq:
+                self.counters["checkpoints_older"] += 1
+                return "older"
+            self.checkpoint = cp
+            self.counters["checkpoints"] += 1
+            if cp.final:  # draining or shedding us: move, and ask the others first
+                self.assignment.no_answer(cp.edge, now, RETRY_MAX)
+                self._moved("final", now, True)
+                return "final"
+            return "kept"
+
+    # Scans and acks (the scan pipeline)
+    def target(self) -> tuple[str, int] | None:
+        """(edge, epoch) to put on the next scan; None while no edge maps the robot."""
+        with self._lock:
+            a = self.assignment
+            return (a.edge, a.epoch) if a.state == ATTACHED and a.edge is not None else None
+
+    def current(self, edge: str, epoch: int) -> bool:
+        with self._lock:
+            return self.assignment.current(edge, epoch)
+
+    def on_sent(self, now: float) -> None:
+        with self._lock:
+            if self._last_ack is None or not self._in_flight:  # idle until now: the clock starts
+                self._last_ack = now
+            self._in_flight = True
+            if self._waiting_since is None:
+                self._waiting_since = now
+
+    def on_ack(self, edge: str, epoch: int, status: str, now: float, in_flight: int) -> bool:
+        """An ack the pipeline accepted; True when it makes the robot move (a refusal under the
+        current epoch)."""
+        with self._lock:
+            current = self.assignment.current(edge, epoch)
+            if current:  # the edge lives; scans sent before this ack and still unanswered were
+                # lost one by one (they expire with the ack timeout), not a silent edge
+                self._waiting_since, self._last_ack, self._in_flight = None, now, in_flight > 0
+            if status == "ok":
+                self.per_edge[edge] += 1
+                if current and self._lost_at is not None:
+                    if len(self.failover_s) < MAX_TIMINGS:
+                        self.failover_s.append(now - self._lost_at)
+                    self._lost_at = None
+            if status == "refused" and current:
+                self.assignment.refused(edge, now)
+                return self._moved("refused", now, True)
+            return False
+
+    def no_scans_in_flight(self) -> None:
+        """Every scan was answered or expired (the loop tells after its ack timeouts)."""
+        with self._lock:
+            self._waiting_since, self._in_flight = None, False
+
+    # The fleet thread
+    def silent(self, now: float) -> bool:
+        """Whether the robot's edge went silent; if so the robot moves. Silent: a scan sent after
+        its last ack unanswered for ``failover_after`` s, or scans in flight and no ack at all for
+        twice that (scans sent before the last ack that fill the window)."""
+        with self._lock:
+            if self.assignment.state != ATTACHED:
+                return False
+            fa = self.failover_after
+            waited = self._waiting_since is not None and now - self._waiting_since > fa
+            stalled = self._in_flight and self._last_ack is not None and now - self._last_ack > 2 * fa
+            if not (waited or stalled):
+                return False
+            edge = self.assignment.edge
+            self.assignment.give_up()
+            if edge is not None:  # the others are asked first for a second
+                self.assignment.no_answer(edge, now, 1.0)
+            return self._moved("silence", now, True)
+
+    def next_attach(self, now: float, now_ms: int) -> tuple[str, int] | None:
+        """The (edge, epoch) to ask now, or None (attached, attaching, nobody, or backing off)."""
+        with self._lock:
+            a = self.assignment
+            if a.state != UNASSIGNED or now < self._retry_at:
+                return None
+            edge = a.next_candidate(now)
+            if edge is None:
+                return None
+            return edge, a.begin_attach(edge, now_ms)
+
+    def attach_result(self, edge: str, epoch: int, reply: wire.AttachReply | None, now: float) -> str:
+        """The answer to our attach; returns "attached", "refused", "no_answer" or "stale"."""
+        with self._lock:
+            a = self.assignment
+            if reply is None:
+                self.counters["attach_no_answer"] += 1
+                a.no_answer(edge, now, self._retry)
+                self._retry_at = now + self._retry
+                self._retry = min(RETRY_MAX, 2 * self._retry)
+                return "no_answer"
+            if reply.robot != self.robot or reply.edge != edge or reply.epoch != epoch:
+                self.counters["attach_stale"] += 1
+                a.no_answer(edge, now, self._retry)
+                return "stale"
+            if not reply.accepted:
+                self.counters["attach_refused"] += 1
+                a.edge_status(edge, reply.capacity, reply.robots, reply.detail == "draining")
+                a.refused(edge, now)
+                return "refused"
+            if not a.attached(edge, epoch):
+                self.counters["attach_stale"] += 1
+                return "stale"
+            self._retry, self._retry_at = RETRY_MIN, -math.inf
+            self._waiting_since, self._last_ack, self._in_flight = None, None, False
+            return "attached"
+
+    def _moved(self, why: str, now: float, was_attached: bool) -> bool:
+        self.moves[why] += 1
+        if was_attached and self._lost_at is None:
+            self._lost_at = now
+        self._waiting_since = None
+        return True
+
+    def attach_payload(self, snapshot: Snapshot | None
+                       ) -> tuple[wire.Checkpoint | None, np.ndarray, np.ndarray]:
+        """The freshest checkpoint (the edge's, or the local odometry's own when newer) and the
+        local poses after it."""
+        with self._lock:
+            cp = self.checkpoint
+        seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        if snapshot is not None:
+            mine = snapshot.checkpoint
+            if mine is not None and (cp is None or mine.seq > cp.seq):
+                cp = mine
+            keep = snapshot.seqs > cp.seq if cp is not None else np.ones(len(snapshot.seqs), bool)
+            seqs, poses = snapshot.seqs[keep], snapshot.poses[keep]
+        return cp, seqs, poses
+
+    def metrics(self) -> dict[str, Any]:
+        with self._lock:
+            a = self.assignment
+            return {"attaches": a.attaches, "failovers": a.failovers, "failover_s": list(self.failover_s),
+                    "moves": dict(self.moves), "per_edge": dict(self.per_edge), **dict(self.counters),
+                    "edge": a.edge if a.state == ATTACHED else "", "epoch": a.epoch}
+
+
+class FleetLink:
+    """``FleetState`` on Zenoh: subscriptions, the presence listener and the fleet thread."""
+
+    def __init__(self, keys: Keys, state: FleetState, sensor: Sensor, attach_timeout: float,
+                 snapshot: Callable[[], Snapshot | None] | None = None) -> None:
+        self.keys = keys
+        self.state = state
+        self.robot = state.robot
+        self.sensor = sensor
+        self.attach_timeout = attach_timeout
+        self.snapshot = snapshot or (lambda: None)
+        self.drops = Drops(log)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._subs: list[Any] = []
+        self._thread = threading.Thread(target=self._run, name="fleet", daemon=True)
+
+    def start(self, session: zenoh.Session, presence: EdgePresence) -> None:
+        self._session = session
+        presence.subscribe(self._on_presence)
+        for edge in presence.edges:
+            self.state.edge_present(edge)
+        self._subs = [
+            session.declare_subscriber(self.keys.all_edge_status(),
+                                       self.drops.guard(self._on_status, "edge status")),
+            session.declare_subscriber(self.keys.checkpoint(self.robot),
+                                       self.drops.guard(self._on_checkpoint, "checkpoint")),
+        ]
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(self.attach_timeout + 1.0)
+        undeclare(*self._subs)
+        self._subs = []
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def wait_settled(self, timeout: float) -> bool:
+        """Block until the robot is attached or no live edge is left to ask (at startup)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.state.target() is not None:
+                return True
+            if self.state.assignment.state == UNASSIGNED and self.state.assignment.next_candidate(
+                    time.monotonic()) is None:
+                return False
+            time.sleep(0.01)
+        return False
+
+    # Zenoh callbacks: short, they only update the state and wake the fleet thread
+    def _on_presence(self, edge: str, present: bool, _now: frozenset[str]) -> None:
+        if present:
+            self.state.edge_present(edge)
+        elif self.state.edge_gone(edge, time.monotonic()):
+            log.warning("edge %s gone: moving", edge)
+        self._wake.set()
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        edge = self.keys.last_chunk(str(sample.key_expr))
+        if not ID.match(edge):
+            self.drops.drop("bad_status", f"edge status on {str(sample.key_expr)[:100]!r}")
+            return
+        try:
+            st = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        except wire.WireError as exc:
+            self.drops.drop("malformed_status", str(exc))
+            return
+        if st.source != "edge" or st.id != edge:
+            self.drops.drop("bad_status", f"status of {st.source} {st.id!r} on edge {edge!r}'s key")
+            return
+        if self.state.edge_status(edge, st.values, time.monotonic()):
+            log.warning("edge %s drains: moving", edge)
+            self._wake.set()
+
+    def _on_checkpoint(self, sample: zenoh.Sample) -> None:
+        try:
+            cp = wire.decode(sample.payload.to_bytes(), expect=wire.Checkpoint)
+        except wire.WireError as exc:
+            self.drops.drop("malformed_checkpoint", str(exc))
+            return
+        if self.state.on_checkpoint(cp, time.monotonic()) == "final":
+            log.info("final checkpoint from edge %s (scan %d): moving", cp.edge, cp.seq)
+            self._wake.set()
+
+    # The fleet thread: attaches and the silence detector
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.05)
+            self._wake.clear()
+            now = time.monotonic()
+            if self.state.silent(now):
+                log.warning("edge answered no scan for %.1f s: moving", self.state.failover_after)
+            ask = self.state.next_attach(now, int(time.time() * 1e3))
+            if ask is not None:
+                try:
+                    self._attach(*ask)
+                except Exception as exc:  # a failed query must not end the thread
+                    log.error("attach to %s failed: %s", ask[0], exc)
+                    self.state.attach_result(ask[0], ask[1], None, time.monotonic())
+
+    def _attach(self, edge: str, epoch: int) -> None:
+        assert self._session is not None
+        cp, seqs, poses = self.state.attach_payload(self.snapshot())
+        s = self.sensor
+        msg = wire.Attach(robot=self.robot, epoch=epoch, max_range=s.max_range, voxel_max=s.voxel_max,
+                          rate_hz=s.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
+                          local_seqs=seqs, local_poses=poses)
+        reply: wire.AttachReply | None = None
+        for r in self._session.get(self.keys.attach(self.robot, edge), payload=wire.encode(msg),
+                                   timeout=self.attach_timeout):
+            if r.ok is None:
+                continue
+            try:
+                reply = wire.decode(r.ok.payload.to_bytes(), expect=wire.AttachReply)
+            except wire.WireError as exc:
+                self.drops.drop("malformed_attach_reply", str(exc))
+                continue
+            if reply.edge == edge:
+                break
+        result = self.state.attach_result(edge, epoch, reply, time.monotonic())
+        where = f"checkpoint {cp.edge or 'local'}:{cp.seq}" if cp is not None else "no checkpoint"
+        if result == "attached":
+            log.info("attached to edge %s (epoch %d, %s, %d local poses)", edge, epoch, where, len(seqs))
+        elif result == "refused" and reply is not None:
+            log.warning("edge %s refused the attach: %s", edge, reply.detail[:200])
+        else:
+            log.info("attach to edge %s: %s", edge, result)

@@ -1,0 +1,173 @@
+"""The robot's own light KISS-ICP: its pose while no edge maps it.
+
+Coarse (voxel ``max_range / 50`` by default, against the edge's ``/ 100``) and on a fixed number
+of threads, so it costs the robot a bounded share of its CPU. It continues the edge's trajectory:
+a period of local odometry starts from the freshest checkpoint (the edge's, or this odometry's
+own from the period before) and the newest pose the edge acknowledged after it; scans sent but
+never answered (kept in a small ring) are registered first, so the trajectory has no hole. Every
+``checkpoint_every`` registrations it takes its own checkpoint (edge ""), which the next attach
+hands to the next edge together with the poses estimated since.
+
+Not thread-safe by itself except where said: the robot's loop thread registers, the fleet thread
+reads ``snapshot()`` (under the lock).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from zoffload.mapping.checkpoint import seed, take_checkpoint
+from zoffload.mapping.mapper import load_kiss_icp
+from zoffload.mapping.se3 import se3_power
+from zoffload.protocol import wire
+from zoffload.robot.scanlog import Histogram
+
+MAX_GAP = 50  # beyond this many scans without a pose, constant velocity means nothing
+MAX_LOCAL_POSES = 10_000  # poses kept for the next attach (16 minutes at 10 Hz)
+
+
+def local_voxel_size(max_range: float, configured: float | None = None) -> float:
+    return configured if configured is not None else max_range / 50.0
+
+
+@dataclass(frozen=True)
+class Held:
+    """A scan kept in the catch-up ring: sent to the edge, maybe never answered."""
+
+    seq: int
+    points: np.ndarray  # the raw scan (a reference, not a copy)
+    stamp: float  # capture stamp (robot wall clock)
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What the next attach draws on: the local checkpoint and the poses of this period."""
+
+    checkpoint: wire.Checkpoint | None
+    seqs: np.ndarray  # int64 (n,)
+    poses: np.ndarray  # float64 (n, 4, 4)
+
+
+class LocalOdometry:
+    def __init__(self, robot: str, max_range: float, voxel: float | None = None, threads: int = 1,
+                 catch_up: int = 10, checkpoint_every: int = 10) -> None:
+        self.robot = robot
+        self.max_range = max_range
+        self.voxel = local_voxel_size(max_range, voxel)
+        self.threads = threads
+        self.checkpoint_every = max(1, checkpoint_every)
+        self.ring: deque[Held] = deque(maxlen=max(0, catch_up))
+        self.cpu = Histogram()  # thread CPU per registration, ms
+        self.registered = 0
+        self.caught_up = 0
+        self._odometry: object | None = None
+        self._last_seq: int | None = None
+        self._since_checkpoint = 0
+        self._period_checkpointed = False
+        self._lock = threading.Lock()
+        self._checkpoint: wire.Checkpoint | None = None  # our own, the newest
+        self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_LOCAL_POSES)
+
+    # The ring (loop thread, while attached)
+    def hold(self, seq: int, points: np.ndarray, stamp: float) -> None:
+        if self.ring.maxlen:
+            self.ring.append(Held(seq, points, stamp))
+
+    # A period of local odometry
+    @property
+    def active(self) -> bool:
+        return self._odometry is not None
+
+    def begin(self, checkpoint: wire.Checkpoint | None, acked: list[tuple[int, np.ndarray]]) -> None:
+        """Start a period from ``checkpoint`` (None: the origin, or where the last acked pose
+        says) and ``acked``: the newest edge poses (seq, pose), ascending, at most a few."""
+        KISSConfig, KissICP = load_kiss_icp()
+        config = KISSConfig()
+        config.data.max_range = self.max_range
+        config.data.min_range = 0.0
+        config.data.deskew = False
+        config.mapping.voxel_size = self.voxel
+        config.registration.max_num_threads = self.threads
+        odo = KissICP(config)
+        last_seq = None
+        if checkpoint is not None:
+            seed(odo, checkpoint)
+            last_seq = checkpoint.seq
+        newer = [(s, p) for s, p in acked if last_seq is None or s > last_seq]
+        if newer:
+            s, p = newer[-1]
+            if len(newer) >= 2 and 0 < s - newer[-2][0] <= MAX_GAP:
+                prev_s, prev = newer[-2]
+                odo.last_delta = se3_power(np.linalg.inv(prev) @ p, 1.0 / (s - prev_s))
+            odo.last_pose = np.array(p, np.float64)
+            last_seq = s
+        with self._lock:
+            self._odometry, self._last_seq, self._since_checkpoint = odo, last_seq, 0
+            self._period_checkpointed = False
+
+    def end(self) -> None:
+        """An edge maps the robot again: this period is over (its checkpoint stays for reference)."""
+        with self._lock:
+            self._odometry = None
+            self._poses.clear()
+        self.ring.clear()
+
+    def catch_up(self, before: int, posed: set[int]) -> list[tuple[int, np.ndarray, float]]:
+        """Register the held scans after the period's start and before ``before`` that got no
+        pose (``posed``); returns (seq, pose, cpu ms) of each."""
+        out = []
+        start = -1 if self._last_seq is None else self._last_seq
+        for h in list(self.ring):
+            if start < h.seq < before and h.seq not in posed:
+                pose, cpu = self.register(h.seq, h.points, h.stamp)
+                out.append((h.seq, pose, cpu))
+                self.caught_up += 1
+        self.ring.clear()
+        return out
+
+    def register(self, seq: int, points: np.ndarray, stamp: float) -> tuple[np.ndarray, float]:
+        """Register one scan; returns its pose and the thread CPU it took (ms)."""
+        c0 = time.thread_time()
+        odo = self._odometry
+        if odo is None:
+            raise RuntimeError("local odometry registers only between begin() and end()")
+        frame = np.asarray(points, np.float64).reshape(-1, 3)
+        frame = frame[np.isfinite(frame).all(axis=1)]
+        gap = seq - self._last_seq if self._last_seq is not None else 1
+        stretch = 1 < gap <= MAX_GAP
+        with self._lock:
+            if stretch:  # scans without a pose in between: predict the motion over all of them
+                odo.last_delta = se3_power(odo.last_delta, gap)  # type: ignore[attr-defined]
+            odo.register_frame(frame, np.empty(0))  # type: ignore[attr-defined]
+            if stretch:
+                odo.last_delta = se3_power(odo.last_delta, 1.0 / gap)  # type: ignore[attr-defined]
+            pose = np.array(odo.last_pose, np.float64)  # type: ignore[attr-defined]
+            self._last_seq = seq
+            self._poses.append((seq, pose))
+            self._since_checkpoint += 1
+            # A period's first registration takes one at once (the previous one is of another period)
+            if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:
+                self._checkpoint = take_checkpoint(odo, self.robot, "", 0, seq, stamp, self.voxel)
+                self._since_checkpoint, self._period_checkpointed = 0, True
+        self.registered += 1
+        cpu = (time.thread_time() - c0) * 1e3
+        self.cpu.add(cpu)
+        return pose, cpu
+
+    def snapshot(self) -> Snapshot:
+        """The newest local checkpoint and this period's poses (fleet thread; the attach sends
+        those after the checkpoint it chooses)."""
+        with self._lock:
+            c = self._checkpoint
+            after = list(self._poses)
+        seqs = np.array([s for s, _ in after], np.int64)
+        poses = np.array([p for _, p in after], np.float64).reshape(-1, 4, 4)
+        return Snapshot(c, seqs, poses)
+
+    def cpu_summary(self) -> dict[str, float | None]:
+        return {"median": self.cpu.quantile(0.5), "mean": self.cpu.mean()}
