@@ -34,7 +34,8 @@ class EdgeWatch:
         """Until the edge's status reports every sample it received as accounted for (a scan
         naming another edge is counted as ``other_edge``: a mutated ``Scan.edge`` does that)."""
         wait_for(lambda: self.value("samples") == self.value("received") + self.value("drops")
-                 + self.value("other_edge") and self.statuses > 0, timeout, "the edge to account for every sample")
+                 + self.value("other_edge") and self.statuses > 0,
+                 timeout, "the edge to account for every sample")
 
     def alive(self) -> bool:
         return self.proc.is_running() and self.proc.status() != psutil.STATUS_ZOMBIE
