@@ -201,10 +201,13 @@ class Fleet:
     def overloaded(self) -> bool:
         return len(self._samples) >= 2 and self._samples[-1][2] > self._samples[0][2]
 
-    def to_shed(self, now: float, workers: int) -> str | None:
-        """The robot to shed now (it is then marked shed and owed a final checkpoint), or None."""
+    def to_shed(self, now: float, workers: int, room_elsewhere: bool = True) -> str | None:
+        """The robot to shed now (it is then marked shed and owed a final checkpoint), or None.
+        Only when another live edge has room (``room_elsewhere``): shedding into a full fleet only
+        moves the overload around and sends robots to their local odometry."""
         kept = [(e.order, r) for r, e in self.attached.items() if not e.shed]
-        if (not self.shed_enabled or self.draining or len(kept) <= 1 or now - self._last_shed < self.window
+        if (not self.shed_enabled or not room_elsewhere or self.draining or len(kept) <= 1
+                or now - self._last_shed < self.window
                 or not self.overloaded() or self.busy_share(workers) <= self.shed_load):
             return None
         robot = max(kept)[1]
@@ -225,6 +228,33 @@ class Fleet:
     def status(self, now: float) -> dict[str, float]:
         return {"capacity": float(self.effective_capacity(now)), "draining": float(self.draining),
                 "attached": float(len(self.attached))}
+
+
+PEER_FRESH = 3.0  # seconds: an edge's status older than this says nothing about its room
+MAX_PEERS = 256
+
+
+class Peers:
+    """The other edges' room, from their 1 Hz status (capacity, robots, draining)."""
+
+    def __init__(self, edge_id: str) -> None:
+        self.edge_id = edge_id
+        # edge -> capacity, robots, draining, when heard
+        self.seen: dict[str, tuple[float, float, bool, float]] = {}
+
+    def update(self, edge: str, values: dict[str, float], now: float) -> None:
+        if edge == self.edge_id or (edge not in self.seen and len(self.seen) >= MAX_PEERS):
+            return
+        self.seen[edge] = (values.get("capacity", 0.0), values.get("robots", 0.0),
+                           values.get("draining", 0.0) > 0, now)
+
+    def room_elsewhere(self, now: float) -> bool:
+        for edge, (capacity, robots, draining, when) in list(self.seen.items()):
+            if now - when > PEER_FRESH:
+                del self.seen[edge]
+            elif not draining and capacity - robots >= 1:
+                return True
+        return False
 
 
 def peek_route(payload: bytes) -> tuple[str, int] | None:

@@ -48,7 +48,7 @@ import zenoh
 
 from zoffload.edge.admission import Admission
 from zoffload.edge.export import RobotFiles
-from zoffload.edge.fleet import MAP, OTHER, Fleet, check_attach, peek_route
+from zoffload.edge.fleet import MAP, OTHER, Fleet, Peers, check_attach, peek_route
 from zoffload.edge.recipe import Spill
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
@@ -174,6 +174,8 @@ class MappingService:
         self._sub: zenoh.Subscriber[None] | None = None
         self._map_q: zenoh.Queryable[None] | None = None
         self._attach_q: zenoh.Queryable[None] | None = None
+        self.peers = Peers(edge_id)
+        self._peers_sub: zenoh.Subscriber[None] | None = None
 
     def start(self, session: zenoh.Session) -> None:
         if self.make_mapper is not None:
@@ -187,12 +189,25 @@ class MappingService:
         if self.edge_id:
             self._attach_q = session.declare_queryable(self.keys.all_attaches(self.edge_id),
                                                        self.attach_drops.guard(self._on_attach, "attach"))
+            # the other edges' room: a robot is shed only when another edge can take it
+            self._peers_sub = session.declare_subscriber(
+                self.keys.all_edge_status(), self.attach_drops.guard(self._on_peer, "edge status"))
+
+    def _on_peer(self, sample: zenoh.Sample) -> None:
+        try:
+            st = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+        except wire.WireError as exc:
+            self.attach_drops.drop("malformed_status", str(exc))
+            return
+        if st.source == "edge" and self.keys.last_chunk(str(sample.key_expr)) == st.id:
+            with self._lock:
+                self.peers.update(st.id, st.values, time.monotonic())
 
     def stop(self) -> None:
         # No new scans first: one queued after the workers stop would never be acked. The map
         # queryable and the ack publishers go with the session, so maps are served to the end.
-        undeclare(self._sub, self._attach_q)
-        self._sub = self._attach_q = None
+        undeclare(self._sub, self._attach_q, self._peers_sub)
+        self._sub = self._attach_q = self._peers_sub = None
         self._stop.set()
         with self._lock:
             self._lock.notify_all()
@@ -502,7 +517,7 @@ class MappingService:
         now = time.monotonic() if now is None else now
         with self._lock:
             self.fleet.sample(now, self._busy, self.counters["dropped"])
-            shed = self.fleet.to_shed(now, len(self._workers))
+            shed = self.fleet.to_shed(now, len(self._workers), self.peers.room_elsewhere(now))
             if shed is not None:
                 self.counters["shed"] += 1
                 self._ask_final(shed)

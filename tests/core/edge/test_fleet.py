@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from zoffload.edge.fleet import MAP, OTHER, REFUSE, Fleet, check_attach, peek_route
+from zoffload.edge.fleet import MAP, OTHER, PEER_FRESH, REFUSE, Fleet, Peers, check_attach, peek_route
 from zoffload.protocol import wire
 
 
@@ -104,6 +104,27 @@ def test_shedding_takes_the_newest_robot_when_busy_and_dropping() -> None:
     k = fleet(capacity=3)
     k.attach("r1", 1, 0.0)
     assert k.to_shed(window(k, 2.0, True), 2) is None
+
+
+
+def test_no_shedding_into_a_full_fleet() -> None:
+    """Busy and dropping, but no other edge has room: the robots stay (shedding would only bounce
+    them between full edges and into their local odometry)."""
+    g = fleet(capacity=3)
+    for i, r in enumerate(["r1", "r2", "r3"]):
+        g.attach(r, 1, float(i))
+    now = window(g, busy_per_s=1.95, drops=True)
+    peers = Peers("e1")
+    assert not peers.room_elsewhere(now)  # no other edge heard of
+    peers.update("e1", {"capacity": 9, "robots": 0}, now)  # our own status does not count
+    peers.update("e2", {"capacity": 2, "robots": 2}, now)  # full
+    peers.update("e3", {"capacity": 4, "robots": 1, "draining": 1}, now)  # leaving
+    assert not peers.room_elsewhere(now)
+    assert g.to_shed(now, 2, peers.room_elsewhere(now)) is None
+    peers.update("e4", {"capacity": 4, "robots": 1}, now)
+    assert peers.room_elsewhere(now) and not peers.room_elsewhere(now + PEER_FRESH + 1)  # stale: gone
+    peers.update("e4", {"capacity": 4, "robots": 1}, now)
+    assert g.to_shed(now, 2, peers.room_elsewhere(now)) == "r3"
 
 
 def checkpoint(robot: str = "r1", seq: int = 10, pose: np.ndarray | None = None) -> wire.Checkpoint:

@@ -229,8 +229,11 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int) -> None:
 
         sender = threading.Thread(target=stream, daemon=True)
         sender.start()
+        # another edge with room (its status, as it publishes it): shedding hands robots to it
+        other = wire.Status(source="edge", id="e2", stamp=0.0, values={"capacity": 4.0, "robots": 0.0})
         try:
             def shed() -> bool:
+                s.put(KEYS.edge_status("e2"), wire.encode(other))
                 service.tick()
                 return service.status().get("shed", 0) == 1
 
