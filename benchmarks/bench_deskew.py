@@ -64,7 +64,9 @@ def run(variant: str, frames: list[ScanFrame], voxel: float, max_range: float) -
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--speed", type=float, default=4.0, help="m/s (the warehouse loop turns at its corners)")
-    ap.add_argument("--scans", type=int, default=200)
+    # 60 scans = 24 m at 4 m/s; over 200 (75 m) KISS-ICP loses track in every variant, the unskewed
+    # one included, so a longer drive measures that, not deskewing (README, "Deskew, measured")
+    ap.add_argument("--scans", type=int, default=60)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--voxel", type=float, default=0.4, help="KISS-ICP voxel (the edge's for the sim: 0.4)")
     args = ap.parse_args()
