@@ -52,7 +52,7 @@ from zoffload.edge.fleet import MAP, OTHER, Fleet, Peers, check_attach, peek_rou
 from zoffload.edge.recipe import Spill
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
-from zoffload.protocol.intake import robot_in_key
+from zoffload.protocol.intake import edge_status, robot_in_key
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
@@ -194,12 +194,8 @@ class MappingService:
                 self.keys.all_edge_status(), self.attach_drops.guard(self._on_peer, "edge status"))
 
     def _on_peer(self, sample: zenoh.Sample) -> None:
-        try:
-            st = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        except wire.WireError as exc:
-            self.attach_drops.drop("malformed_status", str(exc))
-            return
-        if st.source == "edge" and self.keys.last_chunk(str(sample.key_expr)) == st.id:
+        st = edge_status(sample, self.keys, self.attach_drops)
+        if st is not None:
             with self._lock:
                 self.peers.update(st.id, st.values, time.monotonic())
 

@@ -1,6 +1,7 @@
-"""Intake of a robot's messages on the edge: decode within the edge's limits, check the sender
+"""Intake of messages from the network: decode within the receiver's limits, check the sender
 named in the key, and count every message refused as a drop (``runtime.drops.Drops``: counted by
-reason, the log rate-limited) instead of a log line each."""
+reason, the log rate-limited) instead of a log line each. A robot's scans and frames on the edge;
+the edges' status wherever it is read (the robot's fleet link and camera, the edge's peers)."""
 
 from __future__ import annotations
 
@@ -41,5 +42,20 @@ def decode_from_robot(sample: zenoh.Sample, expect: type[M], robot: str, drops: 
         return None
     if msg.robot != robot:
         drops.drop("foreign", f"{what}: robot {msg.robot!r} in the payload, {robot!r} in the key")
+        return None
+    return msg
+
+
+def edge_status(sample: zenoh.Sample, keys: Keys, drops: DropCounter) -> wire.Status | None:
+    """An edge's status from a Zenoh sample on ``keys.edge_status(edge)``, or None after counting it
+    as a drop: ``malformed_status`` (not a valid status message) or ``foreign_status`` (not an
+    edge's, or naming another edge than the key)."""
+    try:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
+    except wire.WireError as exc:
+        drops.drop("malformed_status", f"on {str(sample.key_expr)[:100]}: {exc}")
+        return None
+    if msg.source != "edge" or msg.id != keys.last_chunk(str(sample.key_expr)):
+        drops.drop("foreign_status", f"status of {msg.source} {msg.id!r} on {str(sample.key_expr)[:100]}")
         return None
     return msg

@@ -41,6 +41,7 @@ import zenoh
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
+from zoffload.protocol.intake import edge_status
 from zoffload.protocol.keys import Keys
 from zoffload.robot.edgechoice import EdgeChoice
 from zoffload.robot.frames import FallbackRules, FrameBook, RobotView
@@ -168,14 +169,8 @@ class CameraOffloader:
             self.book.edges_changed(bool(edges), now)
 
     def _on_edge_status(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        except wire.WireError as exc:
-            self.drops.drop("malformed_status", str(exc))
-            return
-        if msg.source != "edge" or msg.id != self.keys.last_chunk(str(sample.key_expr)):
-            self.drops.drop("foreign_status",
-                            f"status of {msg.source} {msg.id!r} on {str(sample.key_expr)[:100]}")
+        msg = edge_status(sample, self.keys, self.drops)
+        if msg is None:
             return
         with self._lock:
             self.choice.status(msg.id, msg.values)

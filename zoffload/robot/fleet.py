@@ -31,7 +31,8 @@ import numpy as np
 import zenoh
 
 from zoffload.protocol import wire
-from zoffload.protocol.keys import ID, Keys
+from zoffload.protocol.intake import edge_status
+from zoffload.protocol.keys import Keys
 from zoffload.robot.assign import ATTACHED, UNASSIGNED, Assignment
 from zoffload.robot.odometry import Snapshot
 from zoffload.robot.presence import EdgePresence
@@ -300,20 +301,11 @@ class FleetLink:
         self._wake.set()
 
     def _on_status(self, sample: zenoh.Sample) -> None:
-        edge = self.keys.last_chunk(str(sample.key_expr))
-        if not ID.match(edge):
-            self.drops.drop("bad_status", f"edge status on {str(sample.key_expr)[:100]!r}")
+        st = edge_status(sample, self.keys, self.drops)  # its id is a valid one: the codec checks ids
+        if st is None:
             return
-        try:
-            st = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        except wire.WireError as exc:
-            self.drops.drop("malformed_status", str(exc))
-            return
-        if st.source != "edge" or st.id != edge:
-            self.drops.drop("bad_status", f"status of {st.source} {st.id!r} on edge {edge!r}'s key")
-            return
-        if self.state.edge_status(edge, st.values, time.monotonic()):
-            log.warning("edge %s drains: moving", edge)
+        if self.state.edge_status(st.id, st.values, time.monotonic()):
+            log.warning("edge %s drains: moving", st.id)
             self._wake.set()
 
     def _on_checkpoint(self, sample: zenoh.Sample) -> None:
