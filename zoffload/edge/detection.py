@@ -11,8 +11,8 @@ Outputs: ``<ns>/data/<robot>/detections`` (wire.Detections, one per frame: also 
 In a fleet every edge's detector hears every frame (the router fans them out). A frame names the
 edge asked to detect it (``Frame.edge``; "" = any edge that hears it): a frame for another edge
 is not ours, counted ``other_edge`` (not a drop: no answer, no admission, no per-robot state).
-That is decided first, from the field read straight out of the msgpack bytes (``frame_edge``:
-no copy, no pixel touched), before admission and before the frame is decoded.
+That is decided first, from the field read out of the msgpack bytes (``frame_edge``: the pixels
+stepped over, no array built), before admission and before the frame is decoded.
 
 Counters: every sample is counted once as ``samples`` and ends in exactly one of a drop
 (``detector.drops``: bad key, refused, malformed, foreign, a callback exception), ``other_edge`` or
@@ -120,88 +120,12 @@ def decode_image(frame: wire.Frame, limits: wire.Limits = wire.DEFAULT_LIMITS) -
 
 
 def frame_edge(data: bytes | memoryview) -> str | None:
-    """The ``edge`` field of an encoded frame, read from the msgpack bytes without decoding (or
-    copying) anything else; None when the field is absent (a version-1 sender) or the bytes are
-    not a well-formed message map (the full decode judges those). Bounded: at most ``_PEEK_ITEMS``
-    values are stepped over."""
-    b = memoryview(data).cast("B") if not isinstance(data, bytes) else data
-    try:
-        n, i = _container(b, 0, map_only=True)
-        for _ in range(n):
-            key_start = i
-            i = _skip(b, i)
-            if bytes(b[key_start:i]) == _EDGE_KEY:
-                value_start = i
-                i = _skip(b, i)
-                head = b[value_start]
-                if 0xA0 <= head <= 0xBF:
-                    return bytes(b[value_start + 1:i]).decode()
-                if head == 0xD9:
-                    return bytes(b[value_start + 2:i]).decode()
-                return None
-            i = _skip(b, i)
-    except (IndexError, ValueError, _PeekError):
-        return None
-    return None
-
-
-class _PeekError(Exception):
-    pass
-
-
-_EDGE_KEY = b"\xa4edge"
-_PEEK_ITEMS = 256
-_FIXED = {0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8, 0xD0: 1,
-          0xD1: 2, 0xD2: 4, 0xD3: 8, 0xD4: 2, 0xD5: 3, 0xD6: 5, 0xD7: 9, 0xD8: 17}  # bytes after the head
-_SIZED = {0xC4: 1, 0xC5: 2, 0xC6: 4, 0xD9: 1, 0xDA: 2, 0xDB: 4}  # bin/str: bytes of the length
-_CONTAINERS = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}  # (length bytes, values per item)
-
-
-def _container(b: bytes | memoryview, i: int, map_only: bool = False) -> tuple[int, int]:
-    """(values inside, index after the header) of the map (or array) at ``i``."""
-    head = b[i]
-    if 0x80 <= head <= 0x8F:
-        return 2 * (head & 0x0F), i + 1
-    if head in (0xDE, 0xDF):
-        width = _CONTAINERS[head][0]
-        return 2 * int.from_bytes(b[i + 1:i + 1 + width], "big"), i + 1 + width
-    if not map_only:
-        if 0x90 <= head <= 0x9F:
-            return head & 0x0F, i + 1
-        if head in (0xDC, 0xDD):
-            width = _CONTAINERS[head][0]
-            return int.from_bytes(b[i + 1:i + 1 + width], "big"), i + 1 + width
-    raise _PeekError("not a map")
-
-
-def _skip(b: bytes | memoryview, i: int) -> int:
-    """The index after the msgpack value at ``i`` (nested containers stepped through, at most
-    ``_PEEK_ITEMS`` values in all)."""
-    todo, budget = 1, _PEEK_ITEMS
-    while todo:
-        todo -= 1
-        budget -= 1
-        if budget < 0:
-            raise _PeekError("too many values")
-        head = b[i]
-        if head <= 0x7F or head >= 0xE0 or head in (0xC2, 0xC3, 0xC0):
-            i += 1
-        elif 0xA0 <= head <= 0xBF:
-            i += 1 + (head & 0x1F)
-        elif head in _FIXED:
-            i += 1 + _FIXED[head]
-        elif head in _SIZED:
-            width = _SIZED[head]
-            i += 1 + width + int.from_bytes(b[i + 1:i + 1 + width], "big")
-        elif head in (0xC7, 0xC8, 0xC9):  # ext: length, type byte, data
-            width = {0xC7: 1, 0xC8: 2, 0xC9: 4}[head]
-            i += 2 + width + int.from_bytes(b[i + 1:i + 1 + width], "big")
-        else:
-            n, i = _container(b, i)
-            todo += n
-        if i > len(b):
-            raise _PeekError("truncated")
-    return i
+    """The ``edge`` field of an encoded frame, read without decoding the rest (``wire.peek_fields``:
+    the pixels are stepped over, never built); None when the field is absent (a version-1 sender),
+    not a string, or the bytes are not a well-formed frame map (the full decode judges those)."""
+    got = wire.peek_fields(data, wire.Frame.TYPE, ("edge",))
+    edge = got.get("edge") if got is not None else None
+    return edge if isinstance(edge, str) else None
 
 
 @dataclass

@@ -22,7 +22,6 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
-import msgpack
 import numpy as np
 
 from zoffload.protocol import wire
@@ -258,28 +257,13 @@ class Peers:
 
 
 def peek_route(payload: bytes) -> tuple[str, int] | None:
-    """A scan's ``edge`` and ``epoch`` read without decoding it (its arrays are skipped, not
-    copied), so another edge's scans cost the edge almost nothing; None when the payload does not
-    look like a scan (the full decode then counts it)."""
-    try:
-        unpacker = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1), strict_map_key=True,
-                                    max_ext_len=0)
-        unpacker.feed(payload)
-        edge: object = ""
-        epoch: object = 0
-        for _ in range(min(unpacker.read_map_header(), 64)):
-            key = unpacker.unpack()
-            if key == "edge":
-                edge = unpacker.unpack()
-            elif key == "epoch":
-                epoch = unpacker.unpack()
-            elif key == "t":
-                if unpacker.unpack() != wire.Scan.TYPE:
-                    return None
-            else:
-                unpacker.skip()
-    except Exception:  # msgpack raises several unrelated types for broken input
+    """A scan's ``edge`` and ``epoch`` read without decoding it (``wire.peek_fields``), so another
+    edge's scans cost the edge almost nothing; None when the payload does not look like a scan (the
+    full decode then counts it)."""
+    got = wire.peek_fields(payload, wire.Scan.TYPE, ("edge", "epoch"))
+    if got is None:
         return None
+    edge, epoch = got.get("edge", ""), got.get("epoch", 0)
     if not isinstance(edge, str) or not isinstance(epoch, int) or isinstance(epoch, bool):
         return None
     return edge, epoch

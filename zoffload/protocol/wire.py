@@ -472,6 +472,35 @@ def _check_value(kind: str, name: str, f: dataclasses.Field[Any], value: Any, li
     return value
 
 
+PEEK_KEYS = 64  # a message map has fewer fields than this; a hostile one is not read further
+
+
+def peek_fields(data: bytes | bytearray | memoryview, msg_type: str, names: tuple[str, ...]
+                ) -> dict[str, Any] | None:
+    """Some top-level fields of an encoded message, read without decoding it: every other value
+    (arrays included) is stepped over by msgpack, never built. Fields that are absent are left out
+    (a version-1 sender has no ``edge``). None when the bytes are not a message map, its ``t``
+    names another type, or they break off; nothing is checked beyond that (``decode`` judges
+    the message). For deciding cheaply whose message it is (another edge's scan or frame)."""
+    try:
+        unpacker = msgpack.Unpacker(raw=False, max_buffer_size=max(len(data), 1), strict_map_key=True,
+                                    max_ext_len=0)
+        unpacker.feed(data)
+        found: dict[str, Any] = {}
+        for _ in range(min(unpacker.read_map_header(), PEEK_KEYS)):
+            key = unpacker.unpack()
+            if key == "t":
+                if unpacker.unpack() != msg_type:
+                    return None
+            elif key in names:
+                found[key] = unpacker.unpack()
+            else:
+                unpacker.skip()
+    except Exception:  # msgpack raises several unrelated types for broken input
+        return None
+    return found
+
+
 @overload
 def decode(data: bytes | bytearray | memoryview, expect: type[M], limits: Limits = ...) -> M: ...
 

@@ -48,3 +48,4 @@ def test_an_edge_status_is_read_only_from_that_edge_key() -> None:
                          (KEYS.edge_status("e1"), b"\x00garbage")):
         assert edge_status(_Sample(key, _Payload(payload)), KEYS, drops) is None  # type: ignore[arg-type]
     assert drops.counts == {"foreign_status": 2, "malformed_status": 1}
+

@@ -105,3 +105,15 @@ def test_frame_and_detections_messages_round_trip() -> None:
                            infer_time=0.01, queue_time=0.0, batch=1, boxes=np.ones((2, 4), np.float32),
                            scores=np.ones(2, np.float32), classes=np.zeros(2, np.int32))
     assert wire.decode(wire.encode(d), expect=wire.Detections).classes.tolist() == [0, 0]
+
+
+def test_peek_fields_reads_some_fields_of_one_message_type_and_nothing_else() -> None:
+    scan = wire.Scan(robot="r1", seq=3, send_stamp=0.0, capture_stamp=0.0, voxel=0.1, voxel_max=0.1,
+                     max_range=50.0, n_raw=2, points=np.zeros((2, 3), np.float32), epoch=7, edge="e2")
+    data = wire.encode(scan)
+    assert wire.peek_fields(data, "scan", ("edge", "epoch")) == {"edge": "e2", "epoch": 7}
+    assert wire.peek_fields(memoryview(data), "scan", ("seq",)) == {"seq": 3}
+    assert wire.peek_fields(data, "scan", ("nothing",)) == {}  # absent: left out
+    assert wire.peek_fields(data, "frame", ("edge",)) is None  # another message type
+    assert wire.peek_fields(data[: len(data) // 2], "scan", ("edge",)) is None  # broken off
+    assert wire.peek_fields(b"\x92\x01\x02", "scan", ("edge",)) is None  # not a map
