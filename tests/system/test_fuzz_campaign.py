@@ -146,8 +146,12 @@ def run_robot_campaign(tmp: Path, port: int, n: int, camera: bool) -> None:
         block = zenoh.CongestionControl.BLOCK
         ack_pub = s.declare_publisher(KEYS.scan_ack("robot1"), congestion_control=block)
         det_pub = s.declare_publisher(KEYS.detections("robot1"), congestion_control=block)
+        status_pub = s.declare_publisher(KEYS.edge_status("edge1"), congestion_control=block)
         for payload in corpus(4, n, kinds=("ack",)):
             ack_pub.put(payload)
+        n_status = n // 10  # an edge's status: read once for the robot (EdgePresence)
+        for payload in corpus(6, n_status, kinds=("status",)):
+            status_pub.put(payload)
         if camera:
             for payload in corpus(5, n, kinds=("detections",)):
                 det_pub.put(payload)
@@ -167,6 +171,9 @@ def run_robot_campaign(tmp: Path, port: int, n: int, camera: bool) -> None:
         assert accounted == real_acks + n, (m, real_acks)
         assert drops.get("callback_error", 0) == 0
         assert m["balanced"]
+        presence = json.loads((tmp / "robot" / "presence_drops.json").read_text())
+        # every hostile status refused and counted (a mutation may leave a valid one: it is read)
+        assert 0 < sum(presence.values()) <= n_status and presence.get("callback_error", 0) == 0, presence
         if camera:
             v = json.loads((tmp / "robot" / "vision_metrics.json").read_text())
             counted = sum(v["other"].get(k, 0) for k in ("malformed_results", "late_or_unknown_results"))

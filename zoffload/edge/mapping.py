@@ -39,9 +39,7 @@ import os
 import threading
 import time
 from collections import Counter, OrderedDict, deque
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 import zenoh
@@ -49,7 +47,7 @@ import zenoh
 from zoffload.edge.admission import Admission
 from zoffload.edge.export import RobotFiles
 from zoffload.edge.fleet import MAP, OTHER, Fleet, Peers, check_attach, peek_route
-from zoffload.edge.recipe import Spill
+from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, Queued, RobotSession
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, robot_in_key
@@ -62,80 +60,6 @@ log = logging.getLogger("zoffload.edge.mapping")
 GENERATIONS_KEPT = 4096  # robot ids whose session count is remembered (for export file names)
 
 
-class Mapper(Protocol):
-    """What the service needs of a robot's mapper: ``recipe.BoundedMapper``, or a stand-in."""
-
-    @property
-    def map_points(self) -> int: ...
-
-    @property
-    def scans(self) -> int: ...
-
-    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration: ...
-
-    def map_cloud(self) -> np.ndarray: ...
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
-
-
-class FleetMapper(Mapper, Protocol):
-    """A mapper that continues trajectories and hands out checkpoints (``recipe.BoundedMapper``);
-    a stand-in without these methods maps attached robots without checkpoints."""
-
-    def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
-                      local_poses: np.ndarray) -> bool: ...
-
-    def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
-                   final: bool = False) -> wire.Checkpoint | None: ...
-
-
-class MapperFactory(Protocol):
-    """Makes a robot's mapper from its first scan: ``recipe.MapperRecipe``, or a stand-in."""
-
-    def warm_up(self) -> None: ...
-
-    def __call__(self, scan: wire.Scan, spill: Spill | None = None) -> Mapper: ...
-
-
-@dataclass
-class _Queued:
-    scan: wire.Scan
-    arrival: float  # edge monotonic clock
-    interarrival: float
-
-
-@dataclass(frozen=True)
-class _Continue:
-    """What an attach asks the robot's mapper to continue from."""
-
-    checkpoint: wire.Checkpoint | None
-    local_seqs: np.ndarray
-    local_poses: np.ndarray
-
-
-@dataclass
-class RobotSession:
-    """Per-robot state on the edge: the mapper (made on the first scan), the queue, counters.
-    ``scheduled``: in the ready queue or held by a worker; ``closed``: evicted."""
-
-    robot: str
-    ack_pub: zenoh.Publisher
-    files: RobotFiles
-    mapper: Mapper | None = None
-    queue: deque[_Queued] = field(default_factory=deque)
-    last_arrival: float | None = None
-    counters: Counter[str] = field(default_factory=Counter)
-    scheduled: bool = False
-    closed: bool = False
-    # Fleet: set under the lock by attaches, drain and shedding; used by the worker holding it
-    pending: _Continue | None = None
-    final_pending: bool = False
-    checkpoint_epoch: int = 0  # the epoch of its last checkpoint (0: none yet)
-    since_checkpoint: int = 0
-    last_stamp: float = 0.0  # capture stamp of its last registered scan
-    cp_pub: zenoh.Publisher | None = None
-
-
 class MappingService:
     """Maps every admitted robot that sends scans. ``make_mapper`` None: receive and ack only (link
     checks, stream benchmarks), nothing decoded or registered."""
@@ -146,7 +70,8 @@ class MappingService:
                  map_dir: Path | None = None, map_format: str = "ply", edge_id: str = "",
                  workers: int | None = None, admission: Admission | None = None,
                  limits: wire.Limits = wire.DEFAULT_LIMITS, fleet: Fleet | None = None,
-                 checkpoint_every: int = 10, checkpoint_resolution: float | None = None) -> None:
+                 checkpoint_every: int = 10, checkpoint_resolution: float | None = None,
+                 final_checkpoint_resolution: float | None = 0.0) -> None:
         self.keys = keys
         self.make_mapper = make_mapper
         self.queue_len = queue
@@ -158,6 +83,7 @@ class MappingService:
         self.fleet = fleet or Fleet(edge_id, capacity=self.admission.max_robots)
         self.checkpoint_every = checkpoint_every
         self.checkpoint_resolution = checkpoint_resolution
+        self.final_checkpoint_resolution = final_checkpoint_resolution
         self.attach_drops = Drops(log)
         self._busy = 0.0  # seconds the workers spent registering and checkpointing
         self.robots: dict[str, RobotSession] = {}
@@ -267,14 +193,14 @@ class MappingService:
         if scan.coding != "f32" and scan.n_points > self.limits.max_points:  # before it waits in a queue
             self.drops.drop("malformed", f"scan of {scan.n_points} points (at most {self.limits.max_points})")
             return
-        overflow: list[_Queued] = []
+        overflow: list[Queued] = []
         with self._lock:
             rs = self.robots.get(robot) or self._new_robot(robot)
             interarrival = float("nan") if rs.last_arrival is None else arrival - rs.last_arrival
             rs.last_arrival = arrival
             rs.counters["received"] += 1
             self.counters["received"] += 1
-            rs.queue.append(_Queued(scan, arrival, interarrival))
+            rs.queue.append(Queued(scan, arrival, interarrival))
             while len(rs.queue) > self.queue_len:
                 overflow.append(rs.queue.popleft())
             if not rs.scheduled:
@@ -358,7 +284,7 @@ class MappingService:
             if closed:
                 self._close(rs)
 
-    def _register(self, rs: RobotSession, item: _Queued) -> None:
+    def _register(self, rs: RobotSession, item: Queued) -> None:
         scan = item.scan
         if self.make_mapper is None:
             self._count(rs, "received_only")
@@ -415,7 +341,7 @@ class MappingService:
             if not detail:
                 self.fleet.attach(robot, attach.epoch, now)
                 rs = rs or self._new_robot(robot)
-                rs.pending = _Continue(checkpoint, attach.local_seqs, attach.local_poses)
+                rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses)
                 rs.final_pending = False
             self.counters["attach_refused" if detail else "attaches"] += 1
             robots, capacity = len(self.robots), self.fleet.effective_capacity(now)
@@ -443,8 +369,8 @@ class MappingService:
             return False
         mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
         t0 = time.perf_counter()
-        cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, self.checkpoint_resolution,
-                               final)
+        resolution = self.final_checkpoint_resolution if final else self.checkpoint_resolution
+        cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, resolution, final)
         if cp is None:
             return False
         data = wire.encode(cp)
@@ -529,7 +455,7 @@ class MappingService:
             rs.counters[what] += 1
             self.counters[what] += 1
 
-    def _ack(self, rs: RobotSession, item: _Queued, status: str, detail: str = "",
+    def _ack(self, rs: RobotSession, item: Queued, status: str, detail: str = "",
              queue_time: float = float("nan"), reg: Registration | None = None) -> None:
         scan = item.scan
         ack = _ack_message(rs.robot, scan.seq, scan.send_stamp, status, self.edge_id, scan.epoch, detail,

@@ -98,7 +98,8 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,
                           map_format=settings.map_format, edge_id=settings.edge_id, workers=m.workers,
                           admission=admitted, limits=wire_limits(settings.limits), fleet=fleet,
-                          checkpoint_every=f.checkpoint_every, checkpoint_resolution=f.checkpoint_resolution)
+                          checkpoint_every=f.checkpoint_every, checkpoint_resolution=f.checkpoint_resolution,
+                          final_checkpoint_resolution=f.final_checkpoint_resolution)
 
 
 def detector_service(settings: EdgeSettings, keys: Keys,

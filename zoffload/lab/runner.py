@@ -71,18 +71,28 @@ def wait_token(session: zenoh.Session, key: str, timeout: float) -> bool:
 
 
 class StatusWatcher:
-    """Keeps the latest robot status values, for progress lines."""
+    """Keeps the latest status values of one robot (or, with ``edge``, of that edge), for progress
+    lines and soak samples. ``replace``: each status replaces the values (an edge's per-robot
+    entries come and go) instead of updating them."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, robot: str) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, robot: str | None = None, edge: str | None = None,
+                 replace: bool = False) -> None:
+        if (robot is None) == (edge is None):
+            raise ValueError("watch one robot or one edge")
         self.values: dict[str, float] = {}
-        self._sub = session.declare_subscriber(keys.robot_status(robot), self._on)
+        self.replace = replace
+        key = keys.robot_status(robot) if robot is not None else keys.edge_status(edge or "")
+        self._sub = session.declare_subscriber(key, self._on)
 
     def _on(self, sample: zenoh.Sample) -> None:
         try:
             msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
         except wire.WireError:
             return
-        self.values.update(msg.values)
+        if self.replace:
+            self.values = dict(msg.values)
+        else:
+            self.values.update(msg.values)
 
     def close(self) -> None:
         self._sub.undeclare()

@@ -19,10 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
 from zoffload.lab.runner import Spawned, StatusWatcher, connect_when_listening, loopback_zenoh, wait_token
-from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import DetectorSettings, EdgeSettings, PerceptionSettings, RobotSettings
 from zoffload.runtime.loading import write_effective
@@ -89,21 +86,6 @@ def _camera_available() -> bool:
     return True
 
 
-class _EdgeStatus:
-    def __init__(self, session: zenoh.Session, keys: Keys, edge: str) -> None:
-        self.values: dict[str, float] = {}
-        self._sub = session.declare_subscriber(keys.edge_status(edge), self._on)
-
-    def _on(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = wire.decode(sample.payload.to_bytes(), expect=wire.Status)
-        except wire.WireError:
-            return
-        values = dict(msg.values)
-        values["map_points"] = sum(v for k, v in values.items() if k.endswith(".map_points"))
-        self.values = values
-
-
 class _Probe:
     """CPU, memory, threads and fds of one child process."""
 
@@ -162,7 +144,7 @@ def run_soak(opts: SoakOptions) -> SoakSummary:
             raise RuntimeError("the edge did not start:\n" + edge_p.tail())
         with session:
             robot_status = StatusWatcher(session, keys, robot.robot_id)
-            edge_status = _EdgeStatus(session, keys, edge.edge_id)
+            edge_status = StatusWatcher(session, keys, edge=edge.edge_id, replace=True)
             robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
             probes = {"edge": _Probe(edge_p.proc.pid), "robot": _Probe(robot_p.proc.pid)}
             rows = _sample_loop(opts, out, probes, robot_status, edge_status, [edge_p, robot_p])
@@ -181,7 +163,7 @@ def run_soak(opts: SoakOptions) -> SoakSummary:
 
 
 def _sample_loop(opts: SoakOptions, out: Path, probes: dict[str, _Probe], robot_status: StatusWatcher,
-                 edge_status: _EdgeStatus, procs: list[Spawned]) -> list[dict[str, float]]:
+                 edge_status: StatusWatcher, procs: list[Spawned]) -> list[dict[str, float]]:
     columns = ["t"] + [f"{p}.{f}" for p in probes for f in PROCESS_FIELDS] + \
         [f"robot.{c}" for c in ROBOT_COUNTERS] + [f"edge.{c}" for c in EDGE_COUNTERS]
     rows: list[dict[str, float]] = []
@@ -202,6 +184,7 @@ def _sample_loop(opts: SoakOptions, out: Path, probes: dict[str, _Probe], robot_
             for name, probe in probes.items():
                 row.update({f"{name}.{k}": v for k, v in probe.sample().items()})
             robot_values, edge_values = dict(robot_status.values), dict(edge_status.values)
+            edge_values["map_points"] = sum(v for k, v in edge_values.items() if k.endswith(".map_points"))
             row.update({f"robot.{c}": robot_values[c] for c in ROBOT_COUNTERS if c in robot_values})
             row.update({f"edge.{c}": edge_values[c] for c in EDGE_COUNTERS if c in edge_values})
             rows.append(row)

@@ -20,11 +20,14 @@ from zoffload.protocol import wire
 def take_checkpoint(odometry: Any, robot: str, edge: str, epoch: int, seq: int, stamp: float,
                     resolution: float | None = None) -> wire.Checkpoint:
     """The state of ``odometry`` (a ``kiss_icp.KissICP``) after scan ``seq``; the local map is
-    coarsened to one point per ``resolution`` voxel (default: KISS-ICP's own voxel size)."""
+    coarsened to one point per ``resolution`` voxel (default: KISS-ICP's own voxel size; 0: the
+    whole local map, every point KISS-ICP keeps, several times larger: a mapper seeded from it
+    continues within a centimetre, one seeded from the coarse map within a few)."""
     cfg = odometry.config
     voxel = float(cfg.mapping.voxel_size)
     local = np.asarray(odometry.local_map.point_cloud(), np.float64).reshape(-1, 3)
-    coarse = voxel_downsample(local, resolution or voxel) if len(local) else local
+    whole = resolution is not None and resolution <= 0
+    coarse = local if whole or not len(local) else voxel_downsample(local, resolution or voxel)
     return wire.Checkpoint(
         robot=robot, edge=edge, epoch=epoch, seq=seq, stamp=stamp, voxel_size=voxel,
         max_range=float(cfg.data.max_range), min_range=float(cfg.data.min_range),

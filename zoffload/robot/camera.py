@@ -41,7 +41,6 @@ import zenoh
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
-from zoffload.protocol.intake import edge_status
 from zoffload.protocol.keys import Keys
 from zoffload.robot.edgechoice import EdgeChoice
 from zoffload.robot.frames import FallbackRules, FrameBook, RobotView
@@ -126,8 +125,7 @@ class CameraOffloader:
         with self._lock:
             self.book.edge_present = presence.any
             self.choice.present(presence.edges)
-        self._status_sub = session.declare_subscriber(self.keys.all_edge_status(),
-                                                      self.drops.guard(self._on_edge_status, "edge status"))
+        presence.subscribe_status(self._on_edge_status)
         self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id),
                                                    self.drops.guard(self._on_result, "detections"))
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
@@ -137,8 +135,9 @@ class CameraOffloader:
             self.preview = PreviewPublisher(session, key, self.opts.robot_id,
                                             period=self.opts.preview_period).start()
         ping = self.keys.ping(self.opts.robot_id)
+        spool = self.opts.out_dir / "monitor.csv" if self.opts.out_dir else None
         self.monitor = ResourceMonitor(session, ping, lambda: float(self.bytes_sent),
-                                       ping_timeout=self.rules.reply_timeout).start()
+                                       ping_timeout=self.rules.reply_timeout, spool=spool).start()
         for target, name in ((self._local_worker, "local-detector"), (self._sender, "frame-sender")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -154,10 +153,11 @@ class CameraOffloader:
 
     def close(self) -> None:
         self._stop_threads()
+        if self.monitor is not None:
+            self.monitor.close()
         if self.preview is not None:
             self.preview.close()
-        undeclare(getattr(self, "_det_sub", None), getattr(self, "_status_sub", None),
-                  getattr(self, "_pub", None))
+        undeclare(getattr(self, "_det_sub", None), getattr(self, "_pub", None))
 
     # Zenoh callback threads
     def _on_edges(self, edge: str, present: bool, edges: frozenset[str]) -> None:
@@ -168,10 +168,8 @@ class CameraOffloader:
                 self.book.edge_gone(edge, now)
             self.book.edges_changed(bool(edges), now)
 
-    def _on_edge_status(self, sample: zenoh.Sample) -> None:
-        msg = edge_status(sample, self.keys, self.drops)
-        if msg is None:
-            return
+    def _on_edge_status(self, msg: wire.Status) -> None:
+        """An edge's status (read and checked by the robot's EdgePresence): its detector's room."""
         with self._lock:
             self.choice.status(msg.id, msg.values)
 
@@ -375,8 +373,11 @@ class CameraOffloader:
     def _smoothed(self) -> tuple[float, float]:
         return self.monitor.smoothed() if self.monitor else (float("nan"), float("nan"))
 
-    def _samples(self) -> list[dict[str, float]]:
-        return self.monitor.history() if self.monitor else []
+    def _latest_sample(self) -> dict[str, float] | None:
+        return self.monitor.latest() if self.monitor else None
+
+    def _monitor_means(self) -> dict[str, float | None]:
+        return self.monitor.means() if self.monitor else {}
 
     def status(self) -> dict[str, float]:
         """Frame counters and the latest monitor readings, for the robot's status message."""
@@ -384,9 +385,8 @@ class CameraOffloader:
             values = {k: float(v) for k, v in self.book.balance().items()}
             values.update(fallback=float(self.book.fallback), offloaded=float(self.strategy.offloaded),
                           detector_edge_switches=float(self.choice.switches))
-            samples = self._samples()
-            if samples:
-                last = samples[-1]
+            last = self._latest_sample()
+            if last:
                 values.update({k: float(last[k]) for k in ("cpu_system", "cpu_process", "mbps_out",
                                                             "power_w", "ping_ms")})
         return values
@@ -394,7 +394,7 @@ class CameraOffloader:
     # Results
     def metrics(self) -> dict[str, Any]:
         with self._lock:
-            summary = self.book.summary(self._samples())
+            summary = self.book.summary(self._monitor_means())
             switches = self.choice.switches
         return {"robot": self.opts.robot_id, "source": self.source.name, "strategy": self.strategy.name,
                 "local_model": self.local.name, "encoding": self.opts.encoding,
@@ -406,11 +406,11 @@ class CameraOffloader:
         (out_dir / "vision_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
         with self._lock:  # the pipeline has stopped: nothing changes the records any more
             self.book.log.write(out_dir, self.camera.period)
-            samples = self._samples()
-        with open(out_dir / "monitor.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=ResourceMonitor.FIELDS)
-            w.writeheader()
-            w.writerows(samples)
+        if self.monitor is not None:
+            self.monitor.write_csv(out_dir / "monitor.csv")
+        else:
+            with open(out_dir / "monitor.csv", "w", newline="") as f:
+                csv.DictWriter(f, fieldnames=ResourceMonitor.FIELDS).writeheader()
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

@@ -31,7 +31,6 @@ import numpy as np
 import zenoh
 
 from zoffload.protocol import wire
-from zoffload.protocol.intake import edge_status
 from zoffload.protocol.keys import Keys
 from zoffload.robot.assign import ATTACHED, UNASSIGNED, Assignment
 from zoffload.robot.odometry import Snapshot
@@ -152,6 +151,16 @@ class FleetState:
         with self._lock:
             self._waiting_since, self._in_flight = None, False
 
+    def overdue(self, now: float, after: float) -> bool:
+        """Whether the robot's edge is late answering by more than ``after`` s (the robot then
+        bridges with local odometry; ``silent`` decides the move, later)."""
+        with self._lock:
+            if self.assignment.state != ATTACHED:
+                return False
+            waited = self._waiting_since is not None and now - self._waiting_since > after
+            stalled = self._in_flight and self._last_ack is not None and now - self._last_ack > 2 * after
+            return waited or stalled
+
     # The fleet thread
     def silent(self, now: float) -> bool:
         """Whether the robot's edge went silent; if so the robot moves. Silent: a scan sent after
@@ -259,11 +268,10 @@ class FleetLink:
     def start(self, session: zenoh.Session, presence: EdgePresence) -> None:
         self._session = session
         presence.subscribe(self._on_presence)
+        presence.subscribe_status(self._on_status)
         for edge in presence.edges:
             self.state.edge_present(edge)
         self._subs = [
-            session.declare_subscriber(self.keys.all_edge_status(),
-                                       self.drops.guard(self._on_status, "edge status")),
             session.declare_subscriber(self.keys.checkpoint(self.robot),
                                        self.drops.guard(self._on_checkpoint, "checkpoint")),
         ]
@@ -300,10 +308,8 @@ class FleetLink:
             log.warning("edge %s gone: moving", edge)
         self._wake.set()
 
-    def _on_status(self, sample: zenoh.Sample) -> None:
-        st = edge_status(sample, self.keys, self.drops)  # its id is a valid one: the codec checks ids
-        if st is None:
-            return
+    def _on_status(self, st: wire.Status) -> None:
+        """An edge's status (read and checked by the robot's EdgePresence)."""
         if self.state.edge_status(st.id, st.values, time.monotonic()):
             log.warning("edge %s drains: moving", st.id)
             self._wake.set()

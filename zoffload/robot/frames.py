@@ -348,28 +348,24 @@ class FrameBook:
         b = self.balance()
         return b["frames_in"] == sum(b[k] for k in (*DONE, *DROPPED)) + b["pending"]
 
-    def summary(self, samples: list[dict[str, float]]) -> dict[str, Any]:
-        """The run in figures, as the offloading thesis reports it, with the monitor ``samples``
-        (CPU, Mbps, power, ping once a second) averaged. Exact however many records retired: the
-        per-frame means are running sums (robot/framelog.py)."""
+    def summary(self, monitor: dict[str, float | None] | None = None) -> dict[str, Any]:
+        """The run in figures, as the offloading thesis reports it, with the ``monitor``'s means
+        over the run (CPU, Mbps, power, ping, sampled once a second). Exact however many records
+        retired: the per-frame means are running sums (robot/framelog.py)."""
         bal, totals = self.balance(), self.log.totals_now()
         done = bal["local_done"] + bal["edge_done"]
-
-        def mean(xs: list[Any]) -> float | None:
-            xs = [x for x in xs if x is not None and math.isfinite(x)]
-            return float(np.mean(xs)) if xs else None
-
+        m = monitor or {}
         return {
             "balance": bal,
             "balanced": self.balanced(),
             "processed_pct": 100.0 * done / bal["frames_in"] if bal["frames_in"] else 0.0,
             "offloaded_pct": 100.0 * self.strategy.offloaded / max(self.strategy.total, 1),
             **totals.figures(),
-            "cpu_process_pct": mean([s["cpu_process"] for s in samples]),
-            "cpu_system_pct": mean([s["cpu_system"] for s in samples]),
-            "mbps_out": mean([s["mbps_out"] for s in samples]),
-            "power_w": mean([s["power_w"] for s in samples]),
-            "ping_ms": mean([s.get("ping_ms") for s in samples]),
+            "cpu_process_pct": m.get("cpu_process"),
+            "cpu_system_pct": m.get("cpu_system"),
+            "mbps_out": m.get("mbps_out"),
+            "power_w": m.get("power_w"),
+            "ping_ms": m.get("ping_ms"),
             "fallbacks": list(self.fallback_events),
             "records_retired": self.log.retired,
             "records_on_disk": self.log.folder is not None,

@@ -15,6 +15,7 @@ scans (bytes, network time, T, slot), the bytes acked in the last second, the la
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -71,6 +72,7 @@ class ScanLedger:
         self.counters["local"] += 1
         self.records[seq] = dict(record, seq=seq, status="local", pose_source="local", edge="")
         self.poses[seq] = pose
+        _pose_known(self.records[seq])
         self.log.trim()
 
     def local_pose(self, seq: int, pose: np.ndarray) -> bool:
@@ -81,6 +83,7 @@ class ScanLedger:
             return False
         self.poses[seq] = pose
         rec["pose_source"] = "local"
+        _pose_known(rec)
         return True
 
     def handed_off(self, seq: int, record: dict[str, Any]) -> None:
@@ -122,6 +125,7 @@ class ScanLedger:
             if bucket == "acked":
                 self.poses[ack.seq] = np.array(ack.pose)
                 rec["pose_source"], rec["edge"] = "edge", ack.edge
+                _pose_known(rec)
                 nbytes = int(rec.get("bytes") or 0)
                 self.recent.append(AckInfo(nbytes, rtt - edge_time, ack.interarrival, slot))
                 self._acked_bytes.append((recv_stamp, nbytes))
@@ -188,3 +192,9 @@ class ScanLedger:
             and b["published"] == b["acked"] + b["edge_dropped"] + b["edge_error"] + b["edge_refused"]
             + b["lost"] + b["late"] + b["in_flight"]
         )
+
+
+def _pose_known(rec: dict[str, Any]) -> None:
+    """How long after its capture the scan's first pose came (the robot's clock, ms)."""
+    if "pose_lag_ms" not in rec and "capture_stamp" in rec:
+        rec["pose_lag_ms"] = (time.time() - float(rec["capture_stamp"])) * 1e3

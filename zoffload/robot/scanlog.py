@@ -24,7 +24,7 @@ RECORD_FIELDS = (
     "seq", "index", "capture_stamp", "voxel", "n_raw", "n_nonfinite", "n_sent", "bytes", "coding",
     "compressed", "skipped", "reason", "work_ms", "cpu_ms", "cpu_loop_ms", "cpu_send_ms", "send_stamp",
     "status", "rtt", "network_time", "interarrival", "queue_time", "proc_time", "map_points",
-    "keypoints", "sigma", "pose_source", "edge", "cpu_local_ms",
+    "keypoints", "sigma", "pose_source", "edge", "cpu_local_ms", "pose_lag_ms",
 )
 MAX_JUMPS = 10_000  # switch jumps kept
 JUMP_SPAN = 10  # a switch further than this many scans from the poses before it measures nothing
@@ -145,6 +145,7 @@ class PoseContinuity:
     max_gap_scans: int = 0
     max_gap_s: float = 0.0
     jumps: list[float] = field(default_factory=list)
+    lag: Histogram = field(default_factory=Histogram)  # capture to the first pose known, ms
     _last: list[tuple[int, np.ndarray, float]] = field(default_factory=list)  # (seq, xyz, stamp), last 2
     _source: tuple[str, str] | None = None
 
@@ -155,6 +156,7 @@ class PoseContinuity:
             return
         seq, xyz = int(r["seq"]), np.asarray(pose, np.float64)[:3, 3]
         stamp = float(r.get("capture_stamp", math.nan))
+        self.lag.add(float(r.get("pose_lag_ms", math.nan)))
         if self.run and self._last:
             gap = stamp - self._last[-1][2]
             if math.isfinite(gap):

@@ -43,6 +43,7 @@ from zoffload.protocol import coding, wire
 from zoffload.protocol.keys import Keys
 from zoffload.robot.fleet import FleetLink, FleetState, Sensor
 from zoffload.robot.ledger import ScanLedger
+from zoffload.robot.localpose import PoseKeeper
 from zoffload.robot.odometry import LocalOdometry
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.scanlog import ScanLog, ScanTotals
@@ -84,6 +85,7 @@ class StreamOptions:
     local_voxel: float | None = None
     local_threads: int = 1
     catch_up: int = 10
+    bridge_after: float | None = None  # None: automatic (robot/localpose.py)
 
 
 @dataclass
@@ -126,8 +128,9 @@ class ScanStreamer:
         self.fleet_state = FleetState(o.robot_id, o.failover_after) if o.attach else None
         self.odometry = (LocalOdometry(o.robot_id, source.max_range, o.local_voxel, o.local_threads,
                                        o.catch_up) if o.attach and o.local_odometry else None)
-        self._edge_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=2)  # newest acked, ascending
-        self._pose: tuple[np.ndarray, float] | None = None  # the newest pose, its source (0 edge, 1 local)
+        self.poses = (PoseKeeper(self.odometry, self.fleet_state, self.ledger, self._lock, 1.0 / o.rate_hz,
+                                 o.failover_after, o.bridge_after, alive=self._edge_alive)
+                      if self.fleet_state is not None else None)
 
     @property
     def voxel(self) -> float:
@@ -190,10 +193,8 @@ class ScanStreamer:
             bucket = self.ledger.on_ack(ack, recv)
             refused = self.ledger.counters["edge_refused"]
             in_flight = self.ledger.in_flight
-            if bucket == "acked":
-                if not self._edge_poses or ack.seq > self._edge_poses[-1][0]:
-                    self._edge_poses.append((ack.seq, np.array(ack.pose)))
-                    self._pose = (self._edge_poses[-1][1], 0.0)
+            if bucket == "acked" and self.poses is not None:
+                self.poses.edge_pose(ack.seq, np.array(ack.pose))
         if fleet is not None and bucket != "unknown" and fleet.on_ack(ack.edge, ack.epoch, ack.status, recv,
                                                                       in_flight):
             log.warning("edge %s refused scan %d under our epoch: moving", ack.edge, ack.seq)
@@ -203,6 +204,9 @@ class ScanStreamer:
             self._refused_at = recv
             log.warning("edge %s refused scan %d (%d refused so far): %s", ack.edge or "?", ack.seq,
                         refused, ack.detail[:200])
+
+    def _edge_alive(self, edge: str) -> bool:
+        return self.presence is not None and edge in self.presence.edges
 
     def _sent_under(self, ack: wire.ScanAck) -> bool:
         """Whether ``ack`` answers a scan in flight under that very edge and epoch (an edge the
@@ -219,48 +223,29 @@ class ScanStreamer:
         if fleet is None:
             if self.presence is not None and self.presence.any:
                 return "", 0
-            with self._lock:
-                self.ledger.drop_at_source(reading.seq, "edge_absent", record)
-            return None
-        target = fleet.target()
-        odo = self.odometry
-        if target is not None:
-            if odo is not None and odo.active:
-                odo.end()  # an edge maps the robot again
-            return target
-        if odo is None:
-            with self._lock:
-                self.ledger.drop_at_source(reading.seq, "edge_absent", record)
-            return None
-        if not odo.active:
-            self._begin_local(reading.seq)
-        pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
+        else:
+            target = fleet.target()
+            if target is not None:
+                return target
+            assert self.poses is not None
+            if self.poses.no_edge(reading, record):
+                return None
         with self._lock:
-            self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
-            self._pose = (pose, 1.0)
+            self.ledger.drop_at_source(reading.seq, "edge_absent", record)
         return None
-
-    def _begin_local(self, seq: int) -> None:
-        """No edge maps the robot: start the local odometry from the freshest checkpoint and the
-        newest acked poses, and register first the held scans the edge never answered."""
-        assert self.odometry is not None and self.fleet_state is not None
-        odo = self.odometry
-        cp, mine = self.fleet_state.checkpoint, odo.snapshot().checkpoint
-        if mine is not None and (cp is None or mine.seq > cp.seq):
-            cp = mine
-        with self._lock:
-            acked = list(self._edge_poses)
-            posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
-        odo.begin(cp, acked)
-        for s, pose, cpu in odo.catch_up(seq, posed):
-            with self._lock:
-                if self.ledger.local_pose(s, pose):
-                    self.ledger.records[s]["cpu_local_ms"] = cpu
-        log.info("mapping locally from scan %d (checkpoint %s, %d scans caught up)", seq,
-                 f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
 
     # Per-scan work (the loop thread)
     def process(self, reading: Reading) -> None:
+        bridged = None
+        try:
+            bridged = self._process(reading)
+        finally:
+            if bridged is not None and self.poses is not None:  # the scan has its record now
+                self.poses.book_bridged(reading.seq, *bridged)
+
+    def _process(self, reading: Reading) -> tuple[np.ndarray, float] | None:
+        """Size the scan and hand it to the sender; returns its local pose (and CPU ms) when
+        the robot bridges an overdue edge with local odometry."""
         c0, t0 = time.thread_time(), time.perf_counter()
         frame = reading.frame
         record: dict[str, Any] = {"index": frame.index, "capture_stamp": reading.capture_stamp,
@@ -269,21 +254,21 @@ class ScanStreamer:
             self.ledger.gt_poses[reading.seq] = frame.gt_pose
         target = self._target(reading, record)
         if target is None:
-            return
-        if self.odometry is not None:  # kept in case the edge never answers it
-            self.odometry.hold(reading.seq, reading.frame.points, reading.capture_stamp)
+            return None
+        bridged = self.poses.attached(reading, target) if self.poses is not None else None
+        local_s = bridged[1] / 1e3 if bridged is not None else 0.0  # the odometry's, booked apart
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
             if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
                 self.ledger.drop_at_source(reading.seq, "window", record)
-                return
+                return bridged
         # Size: the policy's choice, the grid pass, the payload's layout
         sized = self.sizer.size(frame.points, getattr(frame, "times", None), self._link_view)
         d = sized.decision
         record.update(voxel=sized.voxel, n_raw=sized.n_valid, n_nonfinite=sized.n_invalid, reason=d.reason)
-        cpu_loop = time.thread_time() - c0
+        cpu_loop = time.thread_time() - c0 - local_s
         record.update(cpu_loop_ms=cpu_loop * 1e3, cpu_ms=cpu_loop * 1e3,
-                      work_ms=(time.perf_counter() - t0) * 1e3)
+                      work_ms=(time.perf_counter() - t0 - local_s) * 1e3)
         if sized.skip or sized.n_points == 0:
             reason = d.cause if sized.skip else "empty"
             with self._lock:
@@ -291,7 +276,7 @@ class ScanStreamer:
                 if reason in DELIBERATE:
                     self._skipped.append(reading.seq)
             self.sizer.pool.give(sized.buffer)
-            return
+            return bridged
         record.update(n_sent=sized.n_points, coding=sized.coding)
         # Hand over to the sender thread: the loop goes back to the sensor whatever the link does
         with self._lock:
@@ -302,6 +287,7 @@ class ScanStreamer:
             with self._lock:
                 self.ledger.drop_at_source(replaced.seq, "replaced")
             self.sizer.pool.give(replaced.sized.buffer)
+        return bridged
 
     # Sending (the sender thread)
     def _send(self, item: _Outgoing) -> None:
@@ -432,8 +418,9 @@ class ScanStreamer:
             values["last_T"] = float(self.ledger.last_interarrival)
             values["skipped"] = float(sum(self.ledger.dropped_source[r] for r in DELIBERATE))
             recent = list(self.ledger.records.values())[-20:]
-            if self._pose is not None:
-                pose, src = self._pose
+            current = self.poses.pose if self.poses is not None else None
+            if current is not None:
+                pose, src = current
                 values.update(pose_x=float(pose[0, 3]), pose_y=float(pose[1, 3]), pose_z=float(pose[2, 3]),
                               pose_source=src)
         if self.fleet_state is not None:
@@ -478,16 +465,16 @@ class ScanStreamer:
 
     def _fleet_metrics(self, totals: ScanTotals, balance: dict[str, int]) -> dict[str, Any]:
         assert self.fleet_state is not None
-        odo = self.odometry
         p = totals.poses
+        assert self.poses is not None
         return {**self.fleet_state.metrics(),
                 "local_scans": balance["local"],
-                "caught_up": odo.caught_up if odo is not None else 0,
-                "local_cpu_ms_per_scan": (odo.cpu_summary() if odo is not None
-                                          else {"median": None, "mean": None}),
-                "local_voxel": odo.voxel if odo is not None else None,
+                **self.poses.metrics(),
                 "max_pose_gap_scans": p.max_gap_scans, "max_pose_gap_s": p.max_gap_s,
                 "switch_jumps_m": list(p.jumps),
+                # capture to the first pose the robot had for a scan (edge ack or local odometry)
+                "pose_lag_ms": {"median": p.lag.quantile(0.5), "p95": p.lag.quantile(0.95),
+                                "max": p.lag.quantile(1.0)},
                 "stale_acks": self.drops.snapshot().get("stale_ack", 0)}
 
     def write_results(self, out_dir: Path) -> None:
@@ -540,5 +527,5 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         out_dir=Path(settings.out_dir) if settings.out_dir else None,
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
         local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,
-        catch_up=f.catch_up)
+        catch_up=f.catch_up, bridge_after=f.bridge_after)
     return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

@@ -96,6 +96,7 @@ class RobotServer:
         for p in self.pipelines:
             values.update(p.status())
         values["edges"] = float(len(self.presence.edges))
+        values["edge_messages_dropped"] = float(self.presence.drops.total())  # tokens and statuses
         msg = wire.Status(source="robot", id=self.settings.robot_id, stamp=time.time(), values=values)
         try:
             if self._status_pub is not None:
@@ -113,6 +114,8 @@ class RobotServer:
             write_effective(self.settings, Path(out) / "robot_config.yaml")
             for p in self.pipelines:
                 p.write_results(Path(out))
+            # what the edges' tokens and statuses brought that was refused (counted, logged)
+            (Path(out) / "presence_drops.json").write_text(json.dumps(self.presence.drops.snapshot()))
         undeclare(self._status_pub, self._token)
         if self._owns_session and self.session is not None:
             self.session.close()

@@ -147,6 +147,11 @@ class EdgeFleetSettings(_Strict):
         default=None, gt=0,
         description="voxel size of a checkpoint's local map, in m (default: the mapper's voxel size)",
     )
+    final_checkpoint_resolution: float = Field(
+        default=0.0, ge=0,
+        description="voxel size of the local map in the final checkpoint of a drain or shed, in m "
+                    "(0: the whole local map, so the next edge continues the pose within ~1 cm)",
+    )
     drain_timeout: float = Field(
         default=10.0, ge=0,
         description="seconds a draining edge (SIGTERM) waits for its robots to move before it stops",
@@ -376,6 +381,11 @@ class RobotFleetSettings(_Strict):
     catch_up: int = Field(
         default=10, ge=0,
         description="recent scans kept so the local odometry can register the ones its edge never answered",
+    )
+    bridge_after: float | None = Field(
+        default=None, gt=0,
+        description="seconds an edge may be late with its acks before the robot also registers its "
+                    "scans itself (default: 2 scan periods or 2 round trips, at most failover_after / 2)",
     )
 
 

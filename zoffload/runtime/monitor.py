@@ -8,12 +8,15 @@ and of the whole machine.
 
 from __future__ import annotations
 
+import csv
 import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import psutil
 import zenoh
@@ -135,20 +138,76 @@ class Pinger:
             self.rtt.add(ms)
 
 
+class SampleLog:
+    """The monitor's samples, bounded for a daemon that runs for days: the newest ``keep`` in
+    memory, running means of every field over all of them (finite values only), and, with a
+    ``path``, every sample appended to a CSV file as it comes (nothing dropped, nothing held)."""
+
+    def __init__(self, fields: tuple[str, ...], keep: int = 3600, path: Path | None = None) -> None:
+        self.fields = fields
+        self.recent: deque[dict[str, float]] = deque(maxlen=keep)
+        self.count = 0
+        self._sums = dict.fromkeys(fields, 0.0)
+        self._ns = dict.fromkeys(fields, 0)
+        self.path = path
+        self._file: Any = None
+        self._writer: Any = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(path, "w", newline="")  # noqa: SIM115 (closed by close())
+            self._writer = csv.DictWriter(self._file, fieldnames=fields)
+            self._writer.writeheader()
+
+    def add(self, sample: dict[str, float]) -> None:
+        self.recent.append(sample)
+        self.count += 1
+        for k in self.fields:
+            v = sample.get(k)
+            if v is not None and math.isfinite(v):
+                self._sums[k] += v
+                self._ns[k] += 1
+        if self._writer is not None:
+            self._writer.writerow(sample)
+            self._file.flush()
+
+    def means(self) -> dict[str, float | None]:
+        """Each field's mean over every sample so far (None when no finite value came)."""
+        return {k: self._sums[k] / self._ns[k] if self._ns[k] else None for k in self.fields}
+
+    def write(self, path: Path) -> None:
+        """All samples as CSV at ``path``: the spool file itself when it is that path, else the
+        samples kept in memory (the newest ``keep``)."""
+        if self.path is not None and path.resolve() == self.path.resolve():
+            if self._file is not None:
+                self._file.flush()
+            return
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=self.fields)
+            w.writeheader()
+            w.writerows(self.recent)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = self._writer = None
+
+
 class ResourceMonitor:
     """Once a second: this process's and the machine's CPU, outgoing Mbps from a byte counter, RAPL
-    power, and the ping-pong RTT to the edge; keeps every sample and 3-sample moving averages of
-    CPU and Mbps (what the offloading rules read)."""
+    power, and the ping-pong RTT to the edge; 3-sample moving averages of CPU and Mbps (what the
+    offloading rules read) and a bounded ``SampleLog`` of the samples (the newest ``keep`` in
+    memory, running means, all of them in ``spool`` when given)."""
 
     FIELDS = ("t", "cpu_system", "cpu_process", "mbps_out", "power_w", "ping_ms")
 
     def __init__(self, session: zenoh.Session, ping_key: str, bytes_out: Callable[[], float],
-                 ping_timeout: float = 0.5, period: float = 1.0) -> None:
+                 ping_timeout: float = 0.5, period: float = 1.0, keep: int = 3600,
+                 spool: Path | None = None) -> None:
         self.session, self.ping_key, self.bytes_out = session, ping_key, bytes_out
         self.ping_timeout, self.period = ping_timeout, period
         self.cpu = MovingAverage(3)
         self.mbps = MovingAverage(3)
-        self.samples: list[dict[str, float]] = []
+        self.log = SampleLog(self.FIELDS, keep=keep, path=spool)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="monitor", daemon=True)
@@ -172,8 +231,8 @@ class ResourceMonitor:
                 with self._lock:
                     self.cpu.add(proc)
                     self.mbps.add(mbps)
-                    self.samples.append({"t": time.time(), "cpu_system": system, "cpu_process": proc,
-                                         "mbps_out": mbps, "power_w": watts, "ping_ms": pinger.rtt.value})
+                    self.log.add({"t": time.time(), "cpu_system": system, "cpu_process": proc,
+                                  "mbps_out": mbps, "power_w": watts, "ping_ms": pinger.rtt.value})
         finally:
             pinger.stop()
 
@@ -182,6 +241,18 @@ class ResourceMonitor:
         with self._lock:
             return self.cpu.value, self.mbps.value
 
-    def history(self) -> list[dict[str, float]]:
+    def latest(self) -> dict[str, float] | None:
         with self._lock:
-            return list(self.samples)
+            return dict(self.log.recent[-1]) if self.log.recent else None
+
+    def means(self) -> dict[str, float | None]:
+        with self._lock:
+            return self.log.means()
+
+    def write_csv(self, path: Path) -> None:
+        with self._lock:
+            self.log.write(path)
+
+    def close(self) -> None:
+        with self._lock:
+            self.log.close()

@@ -83,7 +83,7 @@ def test_a_bounded_book_stays_bounded_and_reports_what_an_unbounded_one_does(tmp
     assert most <= keep + 10  # only the frames still being decided exceed it, briefly
     assert len(bounded.records) <= keep and len(bounded.persons) <= keep
     assert bounded.log.retired == n - len(bounded.records)
-    s_full, s_bounded = full.summary([]), bounded.summary([])
+    s_full, s_bounded = full.summary(), bounded.summary()
     assert s_bounded["records_retired"] == bounded.log.retired and s_bounded["records_on_disk"]
     assert s_full["records_retired"] == 0
     assert comparable(s_bounded) == comparable(s_full)  # exact, not approximately
@@ -106,9 +106,9 @@ def test_a_bounded_book_stays_bounded_and_reports_what_an_unbounded_one_does(tmp
 def test_without_a_folder_retired_records_are_only_counted(tmp_path: Path) -> None:
     full, _ = run(3000, None, None, seed=2)
     counted, _ = run(3000, 64, None, seed=2)
-    s = counted.summary([])
+    s = counted.summary()
     assert s["records_retired"] == 3000 - len(counted.records) > 0 and not s["records_on_disk"]
-    assert comparable(s) == comparable(full.summary([]))
+    assert comparable(s) == comparable(full.summary())
     counted.log.write(tmp_path, PERIOD)  # only what is still in memory
     assert (tmp_path / "frames.csv").read_text().count("\n") == len(counted.records) + 1
 

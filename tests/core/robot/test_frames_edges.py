@@ -69,4 +69,4 @@ def test_a_frame_is_answered_only_by_the_edge_it_was_sent_to_and_lost_when_that_
     assert b.records[1]["status"] == "edge_lost" and 2 in b.in_flight and not b.fallback
     assert b.edge_result(2, "ok", 0.3, 0.02, 0.0, *NONE, edge="edge2") == "edge_done"
     assert b.per_edge == {"edge1": 1, "edge2": 2} and b.balanced()
-    assert b.summary([])["per_edge"] == {"edge1": 1, "edge2": 2}
+    assert b.summary()["per_edge"] == {"edge1": 1, "edge2": 2}

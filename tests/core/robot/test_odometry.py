@@ -69,3 +69,92 @@ def test_unanswered_scans_are_caught_up_and_the_snapshot_carries_the_rest(edge_r
     wire.decode(wire.encode(snap.checkpoint), expect=wire.Checkpoint)  # a valid message
     odo.end()
     assert not odo.active and len(odo.snapshot().seqs) == 0 and odo.snapshot().checkpoint is not None
+
+
+def test_overdue_acks_bridge_with_local_poses_and_an_ack_ends_it(edge_run: tuple) -> None:
+    """Attached to an edge that stops answering: before the robot gives up on it, each scan is
+    registered locally as well, the unanswered ones first; the next ack ends the bridge."""
+    import threading
+    import time
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    fleet.edge_present("edge1")
+    ask = fleet.next_attach(0.0, 1000)
+    assert ask is not None
+    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
+                                               detail="", robots=1, capacity=4), 0.0)
+    fleet.checkpoint = cp  # the edge's newest, after scan 29
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3)
+    keeper.edge_pose(29, mapper.poses[29])
+
+    def scan(i: int) -> tuple[np.ndarray, float] | None:
+        reading = Reading(i, src.read(i), time.time())
+        out = keeper.attached(reading, ask)
+        ledger.handed_off(i, {"capture_stamp": reading.capture_stamp})
+        if out is not None:
+            keeper.book_bridged(i, *out)
+        return out
+
+    for i in range(30, 34):  # sent, answers not yet due
+        assert scan(i) is None
+    assert not odo.active and len(odo.ring) == 4
+    fleet.on_sent(time.monotonic() - 0.5)  # scan 30 went half a second ago, unanswered
+    bridged = scan(34)
+    assert bridged is not None and odo.active
+    assert set(ledger.poses) == {30, 31, 32, 33, 34}  # the unanswered ones caught up first
+    assert all(ledger.records[s]["pose_source"] == "local" for s in range(30, 35))
+    assert all(ledger.records[s]["pose_lag_ms"] >= 0 for s in range(30, 35))
+    assert np.linalg.norm(bridged[0][:3, 3] - mapper.poses[34][:3, 3]) < 0.5
+    assert keeper.pose is not None and keeper.pose[1] == 1.0
+    assert scan(35) is not None  # still overdue: still bridging
+    # The edge answers again (under the current assignment): the bridge ends with the next scan
+    fleet.on_ack(ask[0], ask[1], "ok", time.monotonic(), in_flight=0)
+    assert scan(36) is None and not odo.active
+    m = keeper.metrics()
+    assert m["bridged_scans"] == 2 and m["bridges"] == 1 and m["caught_up"] == 4
+    # Without an explicit setting the threshold is two periods, at most half the failover time
+    auto = PoseKeeper(odo, fleet, ScanLedger(), lock, period=0.1, failover_after=1.0)
+    assert auto.threshold() == pytest.approx(0.2)
+    assert PoseKeeper(odo, fleet, ScanLedger(), lock, period=0.4, failover_after=1.0).threshold() == 0.5
+
+
+def test_scans_in_flight_to_a_dead_edge_get_local_poses_after_the_move(edge_run: tuple) -> None:
+    """A SIGKILLed edge's token goes at once and the robot attaches elsewhere before its next scan:
+    the scans in flight to the dead edge are registered locally then (no bridge happened)."""
+    import threading
+    import time
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    fleet.checkpoint = cp
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    alive = {"edge1": True, "edge2": True}
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, alive=lambda e: alive[e])
+    keeper.edge_pose(29, mapper.poses[29])
+    for i, target in [(30, ("edge1", 1)), (31, ("edge1", 1)), (32, ("edge1", 1))]:
+        assert keeper.attached(Reading(i, src.read(i), time.time()), target) is None
+        ledger.handed_off(i, {"capture_stamp": time.time()})
+    ledger.poses[30] = mapper.poses[30]  # edge1 answered scan 30 before it died
+    alive["edge1"] = False
+    assert keeper.attached(Reading(33, src.read(33), time.time()), ("edge2", 2)) is None
+    assert set(ledger.poses) == {30, 31, 32} and ledger.records[31]["pose_source"] == "local"
+    assert not odo.active and keeper.metrics()["caught_up"] == 2
+    # A planned move (the old edge still there, answering what it was sent) registers nothing
+    alive["edge2"] = True
+    ledger.handed_off(33, {"capture_stamp": time.time()})
+    assert keeper.attached(Reading(34, src.read(34), time.time()), ("edge1", 3)) is None
+    assert 33 not in ledger.poses and keeper.metrics()["caught_up"] == 2

@@ -1,0 +1,95 @@
+"""What the edge's mapping service keeps per robot, and what it needs of a robot's mapper.
+
+``Mapper`` / ``FleetMapper`` / ``MapperFactory``: the mapper's interface (``recipe.BoundedMapper``
+and ``recipe.MapperRecipe``, or a test's stand-in). ``RobotSession``: one robot's state on the
+edge (its mapper, queue, counters and fleet hand-over state), touched under the service's lock
+or by the one worker holding the robot (edge/mapping.py).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import zenoh
+
+from zoffload.edge.export import RobotFiles
+from zoffload.edge.recipe import Spill
+from zoffload.mapping.mapper import Registration
+from zoffload.protocol import wire
+
+
+class Mapper(Protocol):
+    """What the service needs of a robot's mapper: ``recipe.BoundedMapper``, or a stand-in."""
+
+    @property
+    def map_points(self) -> int: ...
+
+    @property
+    def scans(self) -> int: ...
+
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration: ...
+
+    def map_cloud(self) -> np.ndarray: ...
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class FleetMapper(Mapper, Protocol):
+    """A mapper that continues trajectories and hands out checkpoints (``recipe.BoundedMapper``);
+    a stand-in without these methods maps attached robots without checkpoints."""
+
+    def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
+                      local_poses: np.ndarray) -> bool: ...
+
+    def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
+                   final: bool = False) -> wire.Checkpoint | None: ...
+
+
+class MapperFactory(Protocol):
+    """Makes a robot's mapper from its first scan: ``recipe.MapperRecipe``, or a stand-in."""
+
+    def warm_up(self) -> None: ...
+
+    def __call__(self, scan: wire.Scan, spill: Spill | None = None) -> Mapper: ...
+
+
+@dataclass
+class Queued:
+    scan: wire.Scan
+    arrival: float  # edge monotonic clock
+    interarrival: float
+
+
+@dataclass(frozen=True)
+class Continue:
+    """What an attach asks the robot's mapper to continue from."""
+
+    checkpoint: wire.Checkpoint | None
+    local_seqs: np.ndarray
+    local_poses: np.ndarray
+
+
+@dataclass
+class RobotSession:
+    """Per-robot state on the edge: the mapper (made on the first scan), the queue, counters.
+    ``scheduled``: in the ready queue or held by a worker; ``closed``: evicted."""
+
+    robot: str
+    ack_pub: zenoh.Publisher
+    files: RobotFiles
+    mapper: Mapper | None = None
+    queue: deque[Queued] = field(default_factory=deque)
+    last_arrival: float | None = None
+    counters: Counter[str] = field(default_factory=Counter)
+    scheduled: bool = False
+    closed: bool = False
+    # Fleet: set under the lock by attaches, drain and shedding; used by the worker holding it
+    pending: Continue | None = None
+    final_pending: bool = False
+    checkpoint_epoch: int = 0  # the epoch of its last checkpoint (0: none yet)
+    since_checkpoint: int = 0
+    last_stamp: float = 0.0  # capture stamp of its last registered scan
+    cp_pub: zenoh.Publisher | None = None

@@ -1,0 +1,158 @@
+"""The robot's pose when its edge does not give one: local odometry as the scan pipeline's fallback.
+
+Two situations, one light KISS-ICP (robot/odometry.py):
+- **No edge maps the robot** (none attached): every scan is registered here instead of being sent
+  (booked ``local``).
+- **Bridging**: the robot is still attached but its edge's acks are overdue (``bridge_after``
+  seconds since the oldest unanswered scan; by default two scan periods or twice the recent
+  round trip, whichever is longer, and at most half of ``failover_after``). The robot cannot yet
+  tell a dead edge from a slow one, so it keeps sending and also registers each scan itself
+  (the scan's bucket is still what its ack makes it; its pose is the local one until an ack gives
+  the edge's). That covers the second or so before a failover, which otherwise left every scan
+  sent to a dead edge without a pose. Bridging ends with the next scan after an ack under the
+  current assignment; the poses it found go to the next edge in the attach (the odometry's
+  snapshot).
+
+And when the robot has moved because its edge's token went (a dead process: the move is at once,
+no bridging happened), the scans in flight to it are registered here at the first scan under the
+new assignment, so they have poses too.
+
+Either way a period starts from the freshest checkpoint (the edge's or our own) and the newest
+acked poses, and first registers the held scans the edge never answered (the catch-up ring).
+
+Threads: everything here runs on the scan pipeline's loop thread, except ``edge_pose`` (ack
+callback) and ``status``; the ledger is shared under the pipeline's lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from itertools import islice
+from typing import Any
+
+import numpy as np
+
+from zoffload.robot.fleet import FleetState
+from zoffload.robot.ledger import ScanLedger
+from zoffload.robot.odometry import LocalOdometry
+from zoffload.robot.sensor import Reading
+
+log = logging.getLogger("zoffload.robot.localpose")
+
+
+class PoseKeeper:
+    """Which pose the robot has, and the local odometry that fills in when the edge does not."""
+
+    def __init__(self, odometry: LocalOdometry | None, fleet: FleetState, ledger: ScanLedger,
+                 lock: threading.Lock, period: float, failover_after: float,
+                 bridge_after: float | None = None, alive: Callable[[str], bool] | None = None) -> None:
+        self.odometry = odometry
+        self.alive = alive or (lambda _edge: True)  # whether an edge's token is still there
+        self.fleet = fleet
+        self.ledger = ledger
+        self.lock = lock
+        self.period = period
+        self.failover_after = failover_after
+        self.bridge_after = bridge_after  # None: automatic (see module doc)
+        self.bridged = 0  # scans registered here while also sent to an overdue edge
+        self.bridges = 0  # periods of bridging
+        self._bridging = False
+        self._target: tuple[str, int] | None = None  # the assignment of the last scan sent
+        self._edge_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=2)  # newest acked, ascending
+        self.pose: tuple[np.ndarray, float] | None = None  # the newest pose, its source (0 edge, 1 local)
+
+    # The ack callback (caller holds the lock)
+    def edge_pose(self, seq: int, pose: np.ndarray) -> None:
+        if not self._edge_poses or seq > self._edge_poses[-1][0]:
+            self._edge_poses.append((seq, np.array(pose)))
+            self.pose = (self._edge_poses[-1][1], 0.0)
+
+    # The loop thread
+    def threshold(self) -> float:
+        """Seconds the oldest unanswered scan may wait before the robot bridges."""
+        if self.bridge_after is not None:
+            return self.bridge_after
+        with self.lock:
+            recent = [r.get("rtt") for r in islice(reversed(self.ledger.records.values()), 20)]
+        rtts = [x for x in recent if isinstance(x, float)]
+        rtt = float(np.median(rtts)) if rtts else 0.0
+        return min(max(2.0 * self.period, 2.0 * rtt), 0.5 * self.failover_after)
+
+    def no_edge(self, reading: Reading, record: dict[str, Any]) -> bool:
+        """No edge maps the robot: register the scan here and book it ``local``; False without
+        local odometry (the caller drops it)."""
+        odo = self.odometry
+        if odo is None:
+            return False
+        self._bridging, self._target = False, None
+        if not odo.active:
+            self._begin(reading.seq, "no edge")
+        pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
+        with self.lock:
+            self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
+            self.pose = (pose, 1.0)
+        return True
+
+    def attached(self, reading: Reading, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
+        """An edge maps the robot (``target``: edge, epoch): hold the scan for a catch-up, and while
+        the edge's acks are overdue register it here as well; returns (pose, cpu ms) to book once
+        the scan has its record (``book_bridged``), or None."""
+        odo = self.odometry
+        if odo is None:
+            return None
+        previous, self._target = self._target, target
+        if previous is not None and previous != target and not odo.active and not self.alive(previous[0]):
+            # moved off a dead edge: what was in flight to it will not be answered
+            self._begin(reading.seq, f"edge {previous[0]} gone")
+            odo.end()
+        if not self.fleet.overdue(time.monotonic(), self.threshold()):
+            if odo.active:
+                odo.end()  # an edge answers (again)
+                self._bridging = False
+            odo.hold(reading.seq, reading.frame.points, reading.capture_stamp)
+            return None
+        if not odo.active:
+            self._begin(reading.seq, "acks overdue")
+        if not self._bridging:
+            self._bridging, self.bridges = True, self.bridges + 1
+        pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
+        self.bridged += 1
+        return pose, cpu
+
+    def book_bridged(self, seq: int, pose: np.ndarray, cpu: float) -> None:
+        """The local pose of a scan sent (or dropped at source) while bridging."""
+        with self.lock:
+            if self.ledger.local_pose(seq, pose):
+                self.ledger.records[seq]["cpu_local_ms"] = cpu
+            self.pose = (pose, 1.0)
+
+    def _begin(self, seq: int, why: str) -> None:
+        """Start a period from the freshest checkpoint and the newest acked poses, and register
+        first the held scans the edge never answered."""
+        assert self.odometry is not None
+        odo = self.odometry
+        cp, mine = self.fleet.checkpoint, odo.snapshot().checkpoint
+        if mine is not None and (cp is None or mine.seq > cp.seq):
+            cp = mine
+        with self.lock:
+            acked = list(self._edge_poses)
+            posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
+        odo.begin(cp, acked)
+        for s, pose, cpu in odo.catch_up(seq, posed):
+            with self.lock:
+                if self.ledger.local_pose(s, pose):
+                    self.ledger.records[s]["cpu_local_ms"] = cpu
+        log.info("mapping locally from scan %d, %s (checkpoint %s, %d scans caught up)", seq, why,
+                 f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
+
+    def metrics(self) -> dict[str, Any]:
+        odo = self.odometry
+        return {"caught_up": odo.caught_up if odo is not None else 0,
+                "bridged_scans": self.bridged, "bridges": self.bridges,
+                "local_cpu_ms_per_scan": (odo.cpu_summary() if odo is not None
+                                          else {"median": None, "mean": None}),
+                "local_voxel": odo.voxel if odo is not None else None}
