@@ -158,15 +158,24 @@ class RobotMapper:
         odometry's pose. The global map is kept. Returns whether the odometry was seeded."""
         seeded = False
         if checkpoint is not None and (self.last_seq is None or checkpoint.seq > self.last_seq):
-            if not config_matches(self.odometry, checkpoint):
-                log.warning("checkpoint of %s made by a mapper configured otherwise (voxel %.3f m, range "
-                            "%.1f m): seeding anyway", checkpoint.robot, checkpoint.voxel_size,
-                            checkpoint.max_range)
-            if self.last_seq is not None:
-                self.odometry.local_map.clear()
-            seed(self.odometry, checkpoint)
+            matches = config_matches(self.odometry, checkpoint)
+            if not matches and self.last_seq is not None:
+                # The robot's own coarse checkpoint (its local odometry) back on an edge that mapped
+                # it before: keep this mapper's finer local map (same world frame), take the pose
+                log.info("checkpoint of %s from a mapper configured otherwise (voxel %.3f m): keeping "
+                         "this mapper's local map, continuing from its pose", checkpoint.robot,
+                         checkpoint.voxel_size)
+                self.odometry.last_pose = np.array(checkpoint.pose, np.float64)
+            else:
+                if not matches:
+                    log.warning("checkpoint of %s made by a mapper configured otherwise (voxel %.3f m, "
+                                "range %.1f m): seeding anyway", checkpoint.robot, checkpoint.voxel_size,
+                                checkpoint.max_range)
+                if self.last_seq is not None:
+                    self.odometry.local_map.clear()
+                seed(self.odometry, checkpoint)
+                seeded = True
             self.last_seq = int(checkpoint.seq)
-            seeded = True
         seqs = np.asarray(local_seqs, np.int64).reshape(-1)
         poses = np.asarray(local_poses, np.float64).reshape(-1, 4, 4)
         newer = seqs > (self.last_seq if self.last_seq is not None else -1)

@@ -40,6 +40,7 @@ from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.robot.fleet")
 
+OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
 
@@ -226,14 +227,15 @@ class FleetState:
 
     def attach_payload(self, snapshot: Snapshot | None
                        ) -> tuple[wire.Checkpoint | None, np.ndarray, np.ndarray]:
-        """The freshest checkpoint (the edge's, or the local odometry's own when newer) and the
-        local poses after it."""
+        """The checkpoint to continue from and the local poses after it: the edge's newest, whose
+        local map is at an edge mapper's resolution, unless the local odometry's own is more than
+        ``OWN_CHECKPOINT_AFTER`` scans newer (the robot has gone on far from the edge's map)."""
         with self._lock:
             cp = self.checkpoint
         seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
         if snapshot is not None:
             mine = snapshot.checkpoint
-            if mine is not None and (cp is None or mine.seq > cp.seq):
+            if mine is not None and (cp is None or mine.seq > cp.seq + OWN_CHECKPOINT_AFTER):
                 cp = mine
             keep = snapshot.seqs > cp.seq if cp is not None else np.ones(len(snapshot.seqs), bool)
             seqs, poses = snapshot.seqs[keep], snapshot.poses[keep]

@@ -73,3 +73,25 @@ def test_the_bounded_mapper_checkpoints_after_its_last_scan() -> None:
     assert cp is not None and cp.seq == 4 and cp.final and cp.epoch == 3 and cp.edge == "e1"
     np.testing.assert_allclose(cp.pose, m.inner.poses[-1])
     assert m.scans == 5
+
+
+def test_the_robots_coarse_checkpoint_does_not_replace_a_finer_local_map() -> None:
+    """Back on the edge that mapped it, with a checkpoint of its own local odometry (another voxel
+    size): the edge keeps its own local map and continues from the robot's pose."""
+    a = mapper()
+    for i in range(25):
+        a.register(i, SCANS[i])
+    local_map = len(np.asarray(a.odometry.local_map.point_cloud()))
+    robot = RobotMapper(voxel_size=1.0, max_range=SRC.max_range)  # the robot's coarse odometry
+    for i in range(29):
+        robot.register(i, SCANS[i])
+    own = take_checkpoint(robot.odometry, "r1", "", epoch=0, seq=28, stamp=0.0)
+    assert not a.continue_from(own, np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # not seeded
+    assert len(np.asarray(a.odometry.local_map.point_cloud())) == local_map and a.last_seq == 28
+    np.testing.assert_allclose(a.odometry.last_pose, own.pose)
+    for i in range(29, 34):
+        r = a.register(i, SCANS[i])
+    ref = mapper()
+    for i in range(34):
+        rr = ref.register(i, SCANS[i])
+    assert np.linalg.norm(r.pose[:3, 3] - rr.pose[:3, 3]) < 0.1

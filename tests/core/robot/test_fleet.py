@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from zoffload.protocol import wire
-from zoffload.robot.fleet import RETRY_MIN, FleetState
+from zoffload.robot.fleet import OWN_CHECKPOINT_AFTER, RETRY_MIN, FleetState
 from zoffload.robot.odometry import Snapshot
 
 
@@ -93,16 +93,22 @@ def test_only_the_current_assignment_gives_checkpoints_and_the_newest_wins() -> 
     assert f.current(edge, epoch) and not f.current(edge, epoch + 1) and not f.current("e9", epoch)
 
 
-def test_the_attach_carries_the_freshest_checkpoint_and_the_local_poses_after_it() -> None:
+def test_the_attach_carries_the_edges_checkpoint_unless_the_robots_own_is_much_newer() -> None:
     f = FleetState("r1", failover_after=0.5)
     f.edge_present("e1")
     edge, epoch = attached(f)
     f.on_checkpoint(checkpoint(edge, epoch, 20), 1.0)
     poses = np.repeat(np.eye(4)[None], 6, axis=0)
     seqs = np.arange(25, 31, dtype=np.int64)
-    mine = checkpoint("", 0, 27)
-    cp, s, p = f.attach_payload(Snapshot(mine, seqs, poses))
-    assert cp is mine and list(s) == [28, 29, 30] and p.shape == (3, 4, 4)
+    # The robot's own (its local odometry's, a coarser map) only a few scans newer: the edge's
+    # goes, with every local pose after it
+    cp, s, p = f.attach_payload(Snapshot(checkpoint("", 0, 27), seqs, poses))
+    assert cp is not None and cp.edge == edge and list(s) == list(range(25, 31)) and p.shape == (6, 4, 4)
+    # Far newer (the robot went on alone): its own, and the poses after it
+    mine = checkpoint("", 0, 20 + OWN_CHECKPOINT_AFTER + 1)
+    far = np.arange(40, 46, dtype=np.int64)
+    cp, s, p = f.attach_payload(Snapshot(mine, far, poses))
+    assert cp is mine and list(s) == [42, 43, 44, 45] and p.shape == (4, 4, 4)
     cp, s, _ = f.attach_payload(Snapshot(checkpoint("", 0, 10), seqs, poses))
     assert cp is not None and cp.edge == edge and list(s) == list(range(25, 31))  # the edge's is fresher
     cp, s, _ = f.attach_payload(None)
