@@ -19,7 +19,6 @@ sd over repeats and the ATE ratio scripted / baseline.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import shlex
@@ -27,7 +26,6 @@ import signal
 import subprocess
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -36,7 +34,14 @@ import numpy as np
 
 from zoffload.lab import fleet_report as fr
 from zoffload.lab.fleet_scenario import EdgeEvent, edge_ids, kills, parse_events, parse_traces, robot_ids
-from zoffload.lab.runner import ROBOT_SNDBUF, Spawned, StartError, connect_when_listening, wait_token
+from zoffload.lab.runner import (
+    ROBOT_SNDBUF,
+    Spawned,
+    StartError,
+    connect_when_listening,
+    sigterm_interrupts,
+    wait_token,
+)
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint
 
@@ -304,24 +309,6 @@ def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces:
     return runs
 
 
-@contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt while the runs go (as Ctrl-C does), so the ``finally`` that
-    stops the child processes runs; SIGTERM's default would leave them running. Main thread only."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     """Every run (and the baseline's), then ``report.md`` and ``results.json`` under ``out``."""
     events = parse_events(exp.events, edge_ids(exp.edges))
@@ -329,7 +316,7 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     refs: dict[tuple[int, ...], Any] = {}
-    with _sigterm_interrupts():  # a SIGTERM to the harness stops its router, edges and robots too
+    with sigterm_interrupts():  # a SIGTERM to the harness stops its router, edges and robots too
         runs = _series(exp, out, events, traces, refs)
         base = _series(replace(exp, events=""), out / "baseline", [], traces, refs) if exp.baseline else None
     agg = fr.aggregate([r["summary"] for r in runs])

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -244,3 +245,21 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
     if edge_code != 0:
         print(f"the edge exited with code {edge_code}:\n" + edge_p.tail())
     return OffloadRun(code, reply, cut_short)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt while the runs go (as Ctrl-C does), so the ``finally`` that
+    stops the child processes runs; SIGTERM's default would leave them running. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -7,7 +7,9 @@ produced, published, acked, lost, in flight, frames; edge: samples, registered, 
 points). Written to ``soak.csv`` as they come, plotted to ``soak.png``, summarised in
 ``soak.json``: each process's RSS growth after ``warmup`` (the map budget filling) as a fraction
 of its RSS then, the thread and fd ranges after warmup, the robot's counters balanced. The
-robot replays its scans in a loop at ``rate_hz``, so the run is as long as asked.
+robot replays its scans forth and back (``pingpong``: a continuous drive, where a loop would jump
+from the last scan to the first and derail the edge's odometry once a lap) at ``rate_hz``, and
+the camera its images in a loop, so the run is as long as asked.
 """
 
 from __future__ import annotations
@@ -19,7 +21,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from zoffload.lab.runner import Spawned, StatusWatcher, connect_when_listening, loopback_zenoh, wait_token
+from zoffload.lab.runner import (
+    Spawned,
+    StatusWatcher,
+    connect_when_listening,
+    loopback_zenoh,
+    sigterm_interrupts,
+    wait_token,
+)
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import DetectorSettings, EdgeSettings, PerceptionSettings, RobotSettings
 from zoffload.runtime.loading import write_effective
@@ -123,11 +132,12 @@ def run_soak(opts: SoakOptions) -> SoakSummary:
     if opts.map_budget:
         mapper = edge.mapper.model_copy(update={"map_budget": opts.map_budget})
         edge = edge.model_copy(update={"mapper": mapper})
-    robot = RobotSettings(scans=opts.scans, replay="loop", rate_hz=opts.rate_hz, out_dir=str(out / "robot"),
-                          wait_edge=30, zenoh=loopback_zenoh(connect=[loopback_endpoint(port)]))
+    robot = RobotSettings(scans=opts.scans, replay="pingpong", rate_hz=opts.rate_hz,
+                          out_dir=str(out / "robot"), wait_edge=30,
+                          zenoh=loopback_zenoh(connect=[loopback_endpoint(port)]))
     if camera:
         robot = robot.model_copy(update={"images": "coco-clips", "perception": PerceptionSettings(
-            encoding="jpeg", fps=opts.fps)})
+            encoding="jpeg", fps=opts.fps, replay="loop")})
     write_effective(edge, out / "edge.yaml")
     write_effective(robot, out / "robot.yaml")
     keys = Keys(robot.namespace)
@@ -139,16 +149,18 @@ def run_soak(opts: SoakOptions) -> SoakSummary:
     rows: list[dict[str, float]] = []
     codes: dict[str, int | None] = {}
     try:
-        session = connect_when_listening(loopback_zenoh(connect=[loopback_endpoint(port)]), edge_p)
-        if session is None or not wait_token(session, keys.any_edge_alive(), 60):
-            raise RuntimeError("the edge did not start:\n" + edge_p.tail())
-        with session:
-            robot_status = StatusWatcher(session, keys, robot.robot_id)
-            edge_status = StatusWatcher(session, keys, edge=edge.edge_id, replace=True)
-            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
-            probes = {"edge": _Probe(edge_p.proc.pid), "robot": _Probe(robot_p.proc.pid)}
-            rows = _sample_loop(opts, out, probes, robot_status, edge_status, [edge_p, robot_p])
-            robot_status.close()
+        with sigterm_interrupts():  # SIGTERM stops the daemons and writes what was measured, as Ctrl-C
+            session = connect_when_listening(loopback_zenoh(connect=[loopback_endpoint(port)]), edge_p)
+            if session is None or not wait_token(session, keys.any_edge_alive(), 60):
+                raise RuntimeError("the edge did not start:\n" + edge_p.tail())
+            with session:
+                robot_status = StatusWatcher(session, keys, robot.robot_id)
+                edge_status = StatusWatcher(session, keys, edge=edge.edge_id, replace=True)
+                robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")],
+                                  out / "robot.log")
+                probes = {"edge": _Probe(edge_p.proc.pid), "robot": _Probe(robot_p.proc.pid)}
+                rows = _sample_loop(opts, out, probes, robot_status, edge_status, [edge_p, robot_p])
+                robot_status.close()
     except KeyboardInterrupt:
         print("\ninterrupted: stopping the daemons and writing what was measured", flush=True)
     finally:

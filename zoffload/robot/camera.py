@@ -73,6 +73,7 @@ class CameraOptions:
     robot_id: str
     fps: float
     max_frames: int | None = None
+    replay: str = "once"  # a recorded source: once, loop or pingpong
     encoding: str = "bgr8"  # "bgr8" or "jpeg"
     jpeg_quality: int = 80
     wait_edge: float = 5.0  # seconds to wait for the edge's subscriber to match at start
@@ -98,7 +99,7 @@ class CameraOffloader:
         self.book = FrameBook(strategy, rules, keep=options.keep_frames, folder=options.out_dir)
         self.choice = EdgeChoice(options.robot_id)  # the edge each frame goes to
         self.drops = Drops(log)
-        self.camera = SensorThread(source, options.fps, "once", options.max_frames, name="camera")
+        self.camera = SensorThread(source, options.fps, options.replay, options.max_frames, name="camera")
         self._lock = threading.RLock()
         self._local_slot: Reading | None = None
         self._local_cond = threading.Condition(self._lock)
@@ -430,6 +431,7 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
     rules = FallbackRules(reply_timeout=p.reply_timeout, fallback_losses=p.fallback_losses,
                           probe_period=p.probe_period, resume_after=p.resume_after)
     options = CameraOptions(robot_id=settings.robot_id, fps=p.fps or source.rate_hz, max_frames=p.max_frames,
+                            replay=p.replay,
                             encoding=p.encoding, jpeg_quality=p.jpeg_quality, wait_edge=settings.wait_edge,
                             cpu_quota=p.cpu_quota, quota_mode=quota_mode, preview_period=p.preview_period,
                             out_dir=Path(settings.out_dir) if settings.out_dir else None)

@@ -212,6 +212,9 @@ class PerceptionSettings(_Strict):
         default=None, gt=0, description="camera rate; unset: the source's (25 for coco-clips)"
     )
     max_frames: int | None = Field(default=None, ge=1, description="stop the camera after this many frames")
+    replay: Replay = Field(
+        default="once", description="how a recorded image source is replayed (loop: over and over, a soak)"
+    )
     encoding: Literal["bgr8", "jpeg"] = Field(
         default="bgr8",
         description="frames to the edge raw (bgr8) or as JPEG",
