@@ -255,8 +255,9 @@ class ScanStreamer:
         target = self._target(reading, record)
         if target is None:
             return None
+        l0 = time.thread_time()
         bridged = self.poses.attached(reading, target) if self.poses is not None else None
-        local_s = bridged[1] / 1e3 if bridged is not None else 0.0  # the odometry's, booked apart
+        local_s = time.thread_time() - l0  # local odometry's (and its catch-up's), booked apart
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
             if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
