@@ -52,6 +52,7 @@ from zoffload.runtime.config import EdgeSettings, LimitsSettings, ZenohSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
+from zoffload.runtime.memory import HeapTrimmer
 from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, with_defaults
 
 log = logging.getLogger("zoffload.edge")
@@ -132,6 +133,7 @@ class EdgeServer:
         self.services: list[EdgeService] = []  # the started ones, in start order
         self.admission = admission(settings)
         self.drops = Drops(log)  # the server's own queryable (ping)
+        self.trimmer = HeapTrimmer(settings.heap_trim_period)
         self._status_pub: zenoh.Publisher | None = None
         self._ping_q: zenoh.Queryable[None] | None = None
         self._token: zenoh.LivelinessToken | None = None
@@ -217,6 +219,7 @@ class EdgeServer:
             values.update(service.status())
         values.update(self.admission.status())
         values.update({f"ping.drop.{k}": float(v) for k, v in self.drops.snapshot().items()})
+        values["heap_trims"] = float(self.trimmer.trims)
         return wire.Status(source="edge", id=self.settings.edge_id, stamp=time.time(), values=values)
 
     def main_loop(self) -> None:
@@ -247,6 +250,7 @@ class EdgeServer:
                 service.evict(robot)
         if self.mapping is not None:
             self.mapping.tick()  # its own clock: a test may pass a future ``now`` to expire robots
+        self.trimmer.maybe()  # fragmented arenas back to the system (runtime/memory.py)
         return gone
 
     # Shutdown

@@ -31,6 +31,7 @@ from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
+from zoffload.runtime.memory import HeapTrimmer
 from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, undeclare, with_defaults
 
 log = logging.getLogger("zoffload.robot")
@@ -50,6 +51,7 @@ class RobotServer:
         self._owns_session = session is None
         self._token: zenoh.LivelinessToken | None = None
         self._status_pub: zenoh.Publisher | None = None
+        self.trimmer = HeapTrimmer(settings.heap_trim_period)
 
     # Startup
     def startup(self) -> None:
@@ -80,6 +82,7 @@ class RobotServer:
             now = time.monotonic()
             if now >= next_status:
                 self.publish_status()
+                self.trimmer.maybe()  # fragmented arenas back to the system (runtime/memory.py)
                 next_status = now + self.settings.status_period
             alive[0].join(timeout=max(0.0, min(0.05, next_status - now)))
         self.publish_status()

@@ -466,6 +466,10 @@ class RobotSettings(_Strict):
         default=3, ge=0, description="unanswered scans before the next is held back; 0 = no limit"
     )
     status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
+    heap_trim_period: float = Field(
+        default=60.0, ge=0,
+        description="seconds between returns of the allocator's free memory to the system (0: never)",
+    )
     wait_edge: float = Field(
         default=5.0, ge=0, description="seconds to wait for an edge at start (it runs on without one)"
     )
@@ -512,6 +516,10 @@ class EdgeSettings(_Strict):
     )
     map_format: Literal["ply", "pcd"] = Field(default="ply", description="file format of the exported maps")
     status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
+    heap_trim_period: float = Field(
+        default=60.0, ge=0,
+        description="seconds between returns of the allocator's free memory to the system (0: never)",
+    )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="the Zenoh session")
 
     @field_validator("edge_id", "namespace")
