@@ -40,6 +40,7 @@ from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.robot.fleet")
 
+DRAIN_WAIT = 1.0  # seconds a robot waits for its draining edge's final checkpoint before moving
 OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
@@ -70,6 +71,7 @@ class FleetState:
         self._waiting_since: float | None = None  # the oldest scan sent after the last ack
         self._last_ack: float | None = None  # of the current assignment (or its first scan sent)
         self._in_flight = False
+        self._drain_seen: float | None = None  # when our edge announced it drains (awaiting its final)
         self._retry = RETRY_MIN
         self._retry_at = -math.inf
         self._lock = threading.RLock()
@@ -85,10 +87,23 @@ class FleetState:
             return self._moved("token", now, was) if self.assignment.edge_gone(edge) else False
 
     def edge_status(self, edge: str, values: dict[str, float], now: float) -> bool:
+        """An edge's status; True when it makes the robot move. Our own edge draining does not move
+        the robot at once: its final checkpoint (the whole local map) comes after its next
+        registered scan and moves it (``on_checkpoint``); ``silent`` moves it if that has not
+        come within ``DRAIN_WAIT`` seconds."""
         with self._lock:
-            was = self.assignment.state == ATTACHED
-            moved = self.assignment.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
-                                                values.get("draining", 0.0) > 0.5)
+            a = self.assignment
+            draining = values.get("draining", 0.0) > 0.5
+            if draining and a.state == ATTACHED and edge == a.edge:
+                info = a.edges.get(edge)
+                if info is not None:
+                    info.capacity, info.robots, info.draining = (int(values.get("capacity", 0.0)),
+                                                                 int(values.get("robots", 0.0)), True)
+                if self._drain_seen is None:
+                    self._drain_seen = now
+                return False
+            was = a.state == ATTACHED
+            moved = a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0), draining)
             return self._moved("draining", now, was) if moved else False
 
     def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
@@ -170,6 +185,9 @@ class FleetState:
         with self._lock:
             if self.assignment.state != ATTACHED:
                 return False
+            if self._drain_seen is not None and now - self._drain_seen > DRAIN_WAIT:
+                self.assignment.give_up()  # draining, and no final checkpoint came: move anyway
+                return self._moved("draining", now, True)
             fa = self.failover_after
             waited = self._waiting_since is not None and now - self._waiting_since > fa
             stalled = self._in_flight and self._last_ack is not None and now - self._last_ack > 2 * fa
@@ -216,9 +234,11 @@ class FleetState:
                 return "stale"
             self._retry, self._retry_at = RETRY_MIN, -math.inf
             self._waiting_since, self._last_ack, self._in_flight = None, None, False
+            self._drain_seen = None
             return "attached"
 
     def _moved(self, why: str, now: float, was_attached: bool) -> bool:
+        self._drain_seen = None
         self.moves[why] += 1
         if was_attached and self._lost_at is None:
             self._lost_at = now

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from zoffload.protocol import wire
-from zoffload.robot.fleet import OWN_CHECKPOINT_AFTER, RETRY_MIN, FleetState
+from zoffload.robot.fleet import DRAIN_WAIT, OWN_CHECKPOINT_AFTER, RETRY_MIN, FleetState
 from zoffload.robot.odometry import Snapshot
 
 
@@ -65,10 +65,16 @@ def test_token_drain_final_checkpoint_and_refusal_each_move_the_robot() -> None:
         f.edge_present(e)
     edge, epoch = attached(f)
     assert not f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 0.0}, 1.0)
-    assert f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 1.0}, 1.0)
-    assert f.target() is None and f.moves["draining"] == 1
+    # Our edge drains: the robot waits for its final checkpoint (the whole local map) ...
+    assert not f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 1.0}, 1.0)
+    assert f.target() == (edge, epoch) and not f.silent(1.0 + DRAIN_WAIT - 0.1)
+    # ... and moves anyway if it does not come in time
+    assert f.silent(1.0 + DRAIN_WAIT + 0.1) and f.target() is None and f.moves["draining"] == 1
     edge, epoch = attached(f, 2.0)
-    assert f.on_checkpoint(checkpoint(edge, epoch, 5, final=True), 3.0) == "final" and f.target() is None
+    # Draining, then the final checkpoint: the move comes with it, at once
+    assert not f.edge_status(edge, {"capacity": 4, "robots": 1, "draining": 1.0}, 2.1)
+    assert f.on_checkpoint(checkpoint(edge, epoch, 4, final=True), 2.2) == "final" and f.target() is None
+    assert not f.silent(10.0)  # nothing left to time out
     edge, epoch = attached(f, 4.0)
     assert not f.on_ack(edge, epoch - 1, "refused", 5.0, 0)  # another epoch's refusal: not ours
     assert f.on_ack(edge, epoch, "refused", 5.0, 0) and f.target() is None
