@@ -13,6 +13,7 @@ import zenoh
 
 from tests.helpers import KEYS, connect_to, listen_on, wait_for
 from zoffload.protocol import wire
+from zoffload.robot.fleet import OWN_CHECKPOINT_AFTER
 from zoffload.robot.scans import scan_streamer
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings
@@ -112,7 +113,9 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
         last_a = robot.fleet_state.checkpoint.seq
 
         a.leave()
-        wait_for(lambda: led.counters["local"] >= 15, 30, "local odometry")
+        # long enough alone that the robot's own checkpoint is more than OWN_CHECKPOINT_AFTER scans
+        # newer than A's: then the attach carries its own (else A's, with the local poses after it)
+        wait_for(lambda: led.counters["local"] >= OWN_CHECKPOINT_AFTER + 20, 30, "local odometry")
         status = robot.status()
         assert status["pose_source"] == 1.0 and status["attached"] == 0.0 and "pose_x" in status
 
@@ -129,7 +132,7 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
         for e in edges:
             e.close()
         hub.close()
-    # The attach to B carried the robot's own checkpoint (newer than A's) and the poses after it
+    # The attach to B carried the robot's own checkpoint (far newer than A's) and the poses after it
     att = b.attaches[0]
     cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
     assert cp.edge == "" and cp.robot == "robot1" and cp.seq > last_a and len(cp.points) > 0
