@@ -81,13 +81,16 @@ class Assignment:
         return False
 
     def edge_status(self, edge: str, capacity: float, robots: float, draining: bool) -> bool:
-        """An edge's load; True when our edge started draining (the robot must move)."""
+        """An edge's load; True when our edge (attached or being asked) is draining. An edge being
+        asked is left at once; an attached one is kept until its final checkpoint moves the robot
+        (``FleetState`` times that wait)."""
         info = self.edges.get(edge)
         if info is None:
             return False  # status of an edge whose token we do not hold: not live
         info.capacity, info.robots, info.draining = int(capacity), int(robots), draining
         if draining and edge == self.edge:
-            self._drop()
+            if self.state != ATTACHED:
+                self._drop()
             return True
         return False
 

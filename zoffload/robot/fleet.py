@@ -93,18 +93,15 @@ class FleetState:
         come within ``DRAIN_WAIT`` seconds."""
         with self._lock:
             a = self.assignment
-            draining = values.get("draining", 0.0) > 0.5
-            if draining and a.state == ATTACHED and edge == a.edge:
-                info = a.edges.get(edge)
-                if info is not None:
-                    info.capacity, info.robots, info.draining = (int(values.get("capacity", 0.0)),
-                                                                 int(values.get("robots", 0.0)), True)
+            was = a.state == ATTACHED
+            if not a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
+                                 values.get("draining", 0.0) > 0.5):
+                return False
+            if a.state == ATTACHED:  # our edge drains: wait for its final checkpoint
                 if self._drain_seen is None:
                     self._drain_seen = now
                 return False
-            was = a.state == ATTACHED
-            moved = a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0), draining)
-            return self._moved("draining", now, was) if moved else False
+            return self._moved("draining", now, was)
 
     def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
         """Keep the newest checkpoint of the current assignment; returns "kept", "stale" (another

@@ -82,6 +82,13 @@ class PoseKeeper:
         rtt = float(np.median(rtts)) if rtts else 0.0
         return min(max(2.0 * self.period, 2.0 * rtt), 0.5 * self.failover_after)
 
+    def _overdue(self, now: float) -> bool:
+        """Whether the edge is late by more than ``threshold``; the round trips are looked at only
+        once it is late by the least the threshold can be (nearly every scan stops there)."""
+        floor = (self.bridge_after if self.bridge_after is not None
+                 else min(2.0 * self.period, 0.5 * self.failover_after))
+        return self.fleet.overdue(now, floor) and self.fleet.overdue(now, self.threshold())
+
     def no_edge(self, reading: Reading, record: dict[str, Any]) -> bool:
         """No edge maps the robot: register the scan here and book it ``local``; False without
         local odometry (the caller drops it)."""
@@ -109,7 +116,7 @@ class PoseKeeper:
             # moved off a dead edge: what was in flight to it will not be answered
             self._begin(reading.seq, f"edge {previous[0]} gone")
             odo.end()
-        if not self.fleet.overdue(time.monotonic(), self.threshold()):
+        if not self._overdue(time.monotonic()):
             if odo.active:
                 odo.end()  # an edge answers (again)
                 self._bridging = False
