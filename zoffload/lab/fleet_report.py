@@ -105,6 +105,7 @@ def robot_figures(metrics: Mapping[str, Any], rows: Sequence[Mapping[str, Any]],
         "pose_lag_ms_max": _num((fleet.get("pose_lag_ms") or {}).get("max")),
         "pose_lag_ms_p95": _num((fleet.get("pose_lag_ms") or {}).get("p95")),
         "bridged_scans": fleet.get("bridged_scans"),
+        "silence_stayed": fleet.get("silence_stayed"),
         "per_edge": dict(per_edge),
         "cpu_ms_per_scan": _num((metrics.get("cpu") or {}).get("process_ms_per_scan")),
         "trajectory_error": dict(ate) if ate else None,
@@ -144,6 +145,7 @@ def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mappi
         "pose_lag_ms_p95": _max(_num(r.get("pose_lag_ms_p95")) for r in rs),
         "pose_lag_ms_max": _max(_num(r.get("pose_lag_ms_max")) for r in rs),
         "bridged_scans": sum(int(r.get("bridged_scans") or 0) for r in rs),
+        "silence_stayed": sum(int(r.get("silence_stayed") or 0) for r in rs),
         "failovers": len(failover),
         "failover_s_mean": _mean(failover),
         "failover_s_max": _max(failover),
@@ -154,7 +156,7 @@ def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mappi
         "on_time_mean": _mean(_num(r.get("on_time")) for r in rs),
         "edge_cores": cores("edge"),
         "robot_cores": cores("robot"),
-        "router_cores": cores("router"),
+        "router_cores": sum(_num(c.get("cores")) or 0.0 for n, c in cpu.items() if n.startswith("router")),
     }
 
 
@@ -190,6 +192,7 @@ ROWS = (
     ("acked by an edge", "acked", ".0f"),
     ("registered locally", "local", ".0f"),
     ("lost (+ late)", "lost", ".0f"),
+    ("dropped or failed by an edge", "edge_dropped", ".0f"),
     ("dropped at the source", "dropped_source", ".0f"),
     ("ledgers balanced (share of runs)", "balanced_all", ".2f"),
     ("ATE RMSE, mean over robots (m)", "ate_rmse_mean", ".3f"),
@@ -200,6 +203,7 @@ ROWS = (
     ("pose lag max, worst robot (ms)", "pose_lag_ms_max", ".0f"),
     ("scans bridged (sent and registered locally)", "bridged_scans", ".0f"),
     ("failovers", "failovers", ".1f"),
+    ("silences waited out (no other edge to go to)", "silence_stayed", ".1f"),
     ("failover time, mean (s)", "failover_s_mean", ".2f"),
     ("failover time, max (s)", "failover_s_max", ".2f"),
     ("switch jump, mean (m)", "switch_jump_m_mean", ".3f"),
@@ -208,7 +212,7 @@ ROWS = (
     ("robot process CPU (ms/scan)", "robot_cpu_ms_per_scan", ".1f"),
     ("on time (acked ≤ 1 period)", "on_time_mean", ".3f"),
     ("edge process CPU (cores)", "edge_cores", ".2f"), ("robot process CPU (cores)", "robot_cores", ".2f"),
-    ("router CPU (cores)", "router_cores", ".2f"),
+    ("router CPU, all routers (cores)", "router_cores", ".2f"),
 )
 
 

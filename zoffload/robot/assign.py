@@ -100,6 +100,10 @@ class Assignment:
         order = rank(self.robot, list(self.edges.values()), now)
         return order[0] if order else None
 
+    def alternatives(self, now: float) -> list[str]:
+        """The edges other than ours that may take us now, best first."""
+        return [e for e in rank(self.robot, list(self.edges.values()), now) if e != self.edge]
+
     def begin_attach(self, edge: str, now_ms: int) -> int:
         """Start asking ``edge``; returns the epoch to propose (larger than every earlier one and
         than the wall clock in ms, so a restarted robot still moves forward)."""

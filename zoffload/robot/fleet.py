@@ -12,8 +12,10 @@ detector, the failover timings. ``FleetLink`` wires it to Zenoh and runs the att
 
 The robot moves when its edge's token goes, its status says draining, it sends a final
 checkpoint, it refuses a scan under the current epoch, or it leaves scans unanswered for
-``failover_after`` seconds. Attaches that get no answer at all (an edge without the attach
-protocol, a lost query) are retried with a backoff doubling from 0.2 s to 5 s.
+``failover_after`` seconds while another live edge could take the robot (with none, the robot
+stays and its local odometry bridges, up to ``STAY_SILENT`` times that). Attaches that get no
+answer at all (an edge without the attach protocol, a lost query) are retried with a backoff
+doubling from 0.2 s to 5 s.
 """
 
 from __future__ import annotations
@@ -44,6 +46,10 @@ DRAIN_WAIT = 1.0  # seconds a robot waits for its draining edge's final checkpoi
 OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
+# A silent edge with no other edge to go to is kept (the local odometry bridges) for up to this many
+# times failover_after more, then re-attached: a fresh attach re-seeds an edge that lost our state
+# quietly
+STAY_SILENT = 5.0
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,7 @@ class FleetState:
         self._last_ack: float | None = None  # of the current assignment (or its first scan sent)
         self._in_flight = False
         self._drain_seen: float | None = None  # when our edge announced it drains (awaiting its final)
+        self._stay_since: float | None = None  # kept a silent edge since (no other edge to go to)
         self._retry = RETRY_MIN
         self._retry_at = -math.inf
         self._lock = threading.RLock()
@@ -148,6 +155,7 @@ class FleetState:
             if current:  # the edge lives; scans sent before this ack and still unanswered were
                 # lost one by one (they expire with the ack timeout), not a silent edge
                 self._waiting_since, self._last_ack, self._in_flight = None, now, in_flight > 0
+                self._stay_since = None
             if status == "ok":
                 self.per_edge[edge] += 1
                 if current and self._lost_at is not None:
@@ -178,7 +186,10 @@ class FleetState:
     def silent(self, now: float) -> bool:
         """Whether the robot's edge went silent; if so the robot moves. Silent: a scan sent after
         its last ack unanswered for ``failover_after`` s, or scans in flight and no ack at all for
-        twice that (scans sent before the last ack that fill the window)."""
+        twice that (scans sent before the last ack that fill the window). With no other edge to
+        go to, the robot stays (counted once per silence, ``silence_stayed``) until an ack comes
+        or ``STAY_SILENT`` times ``failover_after`` have passed; scans expiring meanwhile (the
+        robot stops sending to a silent edge) do not restart that clock."""
         with self._lock:
             if self.assignment.state != ATTACHED:
                 return False
@@ -186,15 +197,31 @@ class FleetState:
                 self.assignment.give_up()  # draining, and no final checkpoint came: move anyway
                 return self._moved("draining", now, True)
             fa = self.failover_after
-            waited = self._waiting_since is not None and now - self._waiting_since > fa
-            stalled = self._in_flight and self._last_ack is not None and now - self._last_ack > 2 * fa
-            if not (waited or stalled):
+            staying = self._stay_since is not None
+            if not staying and self._silent_since(now) <= fa:
                 return False
             edge = self.assignment.edge
+            if self.assignment.alternatives(now) == []:
+                # no other edge could take us: re-attaching to this one would cost a second and a
+                # re-seed; the local odometry bridges while it catches up (an edge that lost our
+                # state refuses the next scan, one that died loses its token: both move us)
+                if self._stay_since is None:
+                    self._stay_since = now
+                    self.counters["silence_stayed"] += 1
+                if now - self._stay_since <= STAY_SILENT * fa:
+                    return False
             self.assignment.give_up()
             if edge is not None:  # the others are asked first for a second
                 self.assignment.no_answer(edge, now, 1.0)
             return self._moved("silence", now, True)
+
+    def _silent_since(self, now: float) -> float:
+        """How long the edge has been silent in the sense of ``silent`` (0 when it is not): the
+        age of the oldest scan unanswered since the last ack, or, with scans in flight, half the
+        time since the last ack (so that both compare with ``failover_after``)."""
+        waited = now - self._waiting_since if self._waiting_since is not None else 0.0
+        stalled = (now - self._last_ack) / 2 if self._in_flight and self._last_ack is not None else 0.0
+        return max(waited, stalled)
 
     def next_attach(self, now: float, now_ms: int) -> tuple[str, int] | None:
         """The (edge, epoch) to ask now, or None (attached, attaching, nobody, or backing off)."""
@@ -231,11 +258,12 @@ class FleetState:
                 return "stale"
             self._retry, self._retry_at = RETRY_MIN, -math.inf
             self._waiting_since, self._last_ack, self._in_flight = None, None, False
-            self._drain_seen = None
+            self._drain_seen, self._stay_since = None, None
             return "attached"
 
     def _moved(self, why: str, now: float, was_attached: bool) -> bool:
         self._drain_seen = None
+        self._stay_since = None
         self.moves[why] += 1
         if was_attached and self._lost_at is None:
             self._lost_at = now

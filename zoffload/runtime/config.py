@@ -371,7 +371,8 @@ class RobotFleetSettings(_Strict):
     attach_timeout: float = Field(default=1.0, gt=0, description="seconds an edge has to answer an attach")
     failover_after: float = Field(
         default=1.0, gt=0,
-        description="seconds without any ack from the robot's edge (scans in flight) before it moves",
+        description="seconds without any ack from the robot's edge (scans in flight) before it moves, "
+                    "when another live edge could take it (else it stays up to 5x longer, bridging)",
     )
     local_odometry: bool = Field(
         default=True, description="register scans on the robot while no edge maps it",

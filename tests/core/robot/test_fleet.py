@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from zoffload.protocol import wire
-from zoffload.robot.fleet import DRAIN_WAIT, OWN_CHECKPOINT_AFTER, RETRY_MIN, FleetState
+from zoffload.robot.fleet import DRAIN_WAIT, OWN_CHECKPOINT_AFTER, RETRY_MIN, STAY_SILENT, FleetState
 from zoffload.robot.odometry import Snapshot
 
 
@@ -143,3 +143,42 @@ def test_unanswered_or_refused_attaches_back_off() -> None:
     m = f.metrics()
     assert m["attach_no_answer"] == 2 and m["attach_refused"] == 1 and m["attach_stale"] == 1
     assert m["attaches"] == 0 and m["edge"] == ""
+
+
+def test_a_silent_edge_is_kept_while_no_other_edge_could_take_the_robot() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    f.edge_present("e1")
+    edge, epoch = attached(f)
+    f.on_sent(1.0)
+    # Alone: a busy edge (a restart that just took every robot) is not re-attached, which would
+    # cost a second's backoff and a re-seed; the local odometry bridges meanwhile
+    assert not f.silent(1.6) and f.target() == (edge, epoch)
+    assert not f.silent(2.0) and f.counters["silence_stayed"] == 1  # one silence, counted once
+    assert not f.on_ack(edge, epoch, "ok", 2.1, in_flight=0)  # it caught up: no move, no failover
+    assert f.metrics()["failover_s"] == [] and f.moves == {}
+    # A second edge appears during the next silence: the robot goes there
+    f.on_sent(3.0)
+    assert not f.silent(3.6)
+    f.edge_present("e2")
+    assert f.silent(3.7) and f.moves["silence"] == 1 and f.counters["silence_stayed"] == 2
+    ask = f.next_attach(3.7, 5000)
+    assert ask is not None and ask[0] == "e2"
+
+
+def test_a_lone_silent_edge_is_re_attached_after_stay_silent_times_failover_after() -> None:
+    f = FleetState("r1", failover_after=0.5)
+    f.edge_present("e1")
+    edge, epoch = attached(f)
+    f.on_sent(1.0)
+    assert not f.silent(1.6)  # silent for more than failover_after: kept, the stay starts
+    # the robot stops sending to a silent edge and its scans expire: that restarts no clock
+    t = 1.6
+    while t < 1.6 + STAY_SILENT * 0.5 - 0.1:
+        f.no_scans_in_flight()
+        f.on_sent(t)
+        assert not f.silent(t + 0.05), t
+        t += 0.3
+    assert f.counters["silence_stayed"] == 1  # one silence, counted once
+    assert f.silent(1.6 + STAY_SILENT * 0.5 + 0.05) and f.moves["silence"] == 1
+    ask = f.next_attach(5.3, 9000)  # the same edge, asked again after its second
+    assert ask is not None and ask[0] == edge and ask[1] > epoch
