@@ -1,6 +1,7 @@
-"""deploy/fleet checked for consistency with the code (no Docker engine here): one router, two
-edges, three robots; each daemon's command parses with its mounted settings, carries its own id
-and its own certificate (made by the `zoffload certs` command the compose file documents)."""
+"""deploy/fleet checked for consistency with the code (no Docker engine here): two linked routers
+(the robots' and the edges'), two edges, three robots; each daemon's command parses with its
+mounted settings, carries its own id and its own certificate (made by the `zoffload certs`
+command the compose file documents); each router runs its own config, linked to the other."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ TEXT = (FLEET / "docker-compose.fleet.yml").read_text()
 COMPOSE = yaml.safe_load(TEXT)
 EDGES = ("edge1", "edge2")
 ROBOTS = ("robot1", "robot2", "robot3")
+ROUTERS = ("router", "rack")  # the robots' router and the edges'
 
 
 def _mounts(service: dict[str, Any]) -> dict[str, str]:
@@ -45,12 +47,14 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_one_router_two_edges_three_robots() -> None:
+def test_two_routers_two_edges_three_robots() -> None:
     import importlib.metadata
 
     services = COMPOSE["services"]
-    assert set(services) == {"router", *EDGES, *ROBOTS}
-    assert services["router"]["image"] == f"eclipse/zenoh:{importlib.metadata.version('eclipse-zenoh')}"
+    assert set(services) == {*ROUTERS, *EDGES, *ROBOTS}
+    for r in ROUTERS:
+        assert services[r]["image"] == f"eclipse/zenoh:{importlib.metadata.version('eclipse-zenoh')}"
+    assert all(services[e]["depends_on"] == ["rack"] for e in EDGES)
     assert {services[s]["image"] for s in (*EDGES, *ROBOTS)} == {"zoffload:0.1.0"}
     assert services["edge1"]["build"]["dockerfile"] == "deploy/Dockerfile"
     assert all(services[e]["stop_signal"] == "SIGTERM" for e in EDGES)  # the planned drain
@@ -90,3 +94,37 @@ def test_each_daemon_has_its_own_id_certificate_and_key(certs: Path) -> None:
     assert len(seeds) == len(ROBOTS)  # three different scenes
     ignore = (FLEET / "certs" / ".gitignore").read_text().splitlines()
     assert "*" in ignore and "!.gitignore" in ignore
+
+
+def _json5(path: Path) -> Any:
+    """A router config as `zoffload certs` writes it (JSON after // comment lines), checked with
+    Zenoh's own parser too."""
+    import json
+
+    import zenoh
+
+    text = path.read_text()
+    zenoh.Config.from_json5(text)
+    return json.loads("\n".join(ln for ln in text.splitlines() if not ln.startswith("//")))
+
+
+def test_the_routers_run_their_own_config_and_certificate_and_are_linked(certs: Path) -> None:
+    services = COMPOSE["services"]
+    for r in ROUTERS:
+        mounts = _mounts(services[r])
+        conf_path = services[r]["command"][-1]
+        conf = _json5(_host(certs, mounts[conf_path]))
+        tls = conf["transport"]["link"]["tls"]
+        for key in ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate"):
+            assert tls[key] in mounts and _host(certs, mounts[tls[key]]).is_file(), (r, key)
+        assert tls["listen_certificate"].endswith(f"/{r}.pem") and tls["enable_mtls"]
+        other = next(x for x in ROUTERS if x != r)
+        subjects = {s["id"]: s for s in conf["access_control"]["subjects"]}
+        assert subjects[f"router_{other}"]["cert_common_names"] == [other]  # the linked router
+        assert {f"robot_{x}" for x in ROBOTS} | {f"edge_{x}" for x in EDGES} <= set(subjects)
+    rack = _json5(_host(certs, _mounts(services["rack"])["/etc/zoffload/certs/rack.json5"]))
+    assert rack["connect"]["endpoints"] == ["tls/router:7447"]  # the rack dials the robots' router
+    # and each daemon dials its own router
+    for name, router in [*((e, "rack") for e in EDGES), *((r, "router") for r in ROBOTS)]:
+        cfg = yaml.safe_load((FLEET / ("edge.yaml" if name in EDGES else "robot.yaml")).read_text())
+        assert cfg["zenoh"]["connect"] == [f"tls/{router}:7447"], name

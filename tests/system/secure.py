@@ -5,7 +5,7 @@ flags of each identity."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tests.system.procs import Proc, script
@@ -19,6 +19,7 @@ class Deployment:
     certs: Path
     port: int
     router: Proc
+    linked: list[tuple[int, Proc]] = field(default_factory=list)  # other routers: (port, process)
 
     @property
     def endpoint(self) -> str:
@@ -34,15 +35,18 @@ class Deployment:
         fields.update(over)
         return ZenohSettings(**fields)  # type: ignore[arg-type]
 
-    def args(self, identity: str) -> list[str]:
-        """The daemons' command-line flags for a client session of ``identity``."""
-        return ["-m", "client", "-e", self.endpoint, "--no-multicast-scouting", "--no-shm",
+    def args(self, identity: str, port: int | None = None) -> list[str]:
+        """The daemons' command-line flags for a client session of ``identity`` (on the router
+        listening on ``port``; default the first)."""
+        endpoint = self.endpoint if port is None else f"tls/localhost:{port}"
+        return ["-m", "client", "-e", endpoint, "--no-multicast-scouting", "--no-shm",
                 "--tls-ca", str(self.certs / "ca.pem"),
                 "--tls-cert", str(self.certs / f"{identity}.pem"),
                 "--tls-key", str(self.certs / f"{identity}.key")]
 
     def stop(self) -> int:
-        return self.router.sigint()
+        codes = [p.sigint() for _, p in reversed(self.linked)] + [self.router.sigint()]
+        return next((c for c in codes if c != 0), 0)  # the first router that did not exit cleanly
 
 
 def deploy(tmp: Path, port: int, robots: list[str], edges: list[str],
@@ -67,3 +71,33 @@ def deploy(tmp: Path, port: int, robots: list[str], edges: list[str],
                 router.sigint(5)
                 raise AssertionError(f"the router did not come up:\n{router.text()}") from None
             time.sleep(0.2)
+
+
+def deploy_linked(tmp: Path, ports: tuple[int, int], robots: list[str], edges: list[str],
+                  monitors: tuple[str, ...] = ("monitor",)) -> Deployment:
+    """Two linked TLS + ACL routers: ``rbt`` on ``ports[0]`` (the robots' network) and ``rack`` on
+    ``ports[1]`` (the edges'), which connects to rbt, as `zoffload certs --routers rbt rack` makes
+    them (each router's own certificate; each knows the other as a linked peer)."""
+    from zoffload.runtime.certs import write_deployment
+
+    certs = tmp / "certs"
+    written = write_deployment(certs, robots, edges, monitors, routers=("rbt", "rack"),
+                               router_listen={"rbt": [f"tls/127.0.0.1:{ports[0]}"],
+                                              "rack": [f"tls/127.0.0.1:{ports[1]}"]},
+                               router_connect=f"tls/localhost:{ports[0]}")
+    rbt = Proc(script("zoffload") + ["router", "-c", str(written["rbt.json5"])], tmp / "rbt.log")
+    rack = Proc(script("zoffload") + ["router", "-c", str(written["rack.json5"])], tmp / "rack.log")
+    d = Deployment(certs, ports[0], rbt, [(ports[1], rack)])
+    for port in ports:
+        probe = d.settings(monitors[0], connect=[f"tls/localhost:{port}"])
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                open_session(probe).close()
+                break
+            except ZenohSessionError:
+                if time.monotonic() > deadline:
+                    d.stop()
+                    raise AssertionError(f"a router did not come up:\n{rbt.text()}\n{rack.text()}") from None
+                time.sleep(0.2)
+    return d

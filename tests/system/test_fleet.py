@@ -2,7 +2,10 @@
 ``zoffload-robot`` clients on loopback (scouting and shared memory off, 1 s leases), simulator
 scans. The edge serving the most robots is SIGKILLed mid-run; every robot must keep a balanced
 ledger, be mapped by the surviving edge after the kill, and never go more than a couple of scans
-without a pose (local odometry covers the failover)."""
+without a pose (local odometry covers the failover).
+
+The same with two routers: the robots' (on the robots' network) and the edges' (in the rack),
+linked router to router; every message between a robot and an edge crosses both."""
 
 from __future__ import annotations
 
@@ -53,18 +56,37 @@ def _rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def test_three_robots_two_edges_one_killed(free_port: int, tmp_path: Path) -> None:
-    router = Proc(script("zoffload") + ["router", "--no-multicast-scouting", "--no-shm", "-l",
-                                        f"tcp/127.0.0.1:{free_port}", *LEASE], tmp_path / "router.log")
-    client_args = ["-m", "client", "-e", f"tcp/127.0.0.1:{free_port}", "--no-multicast-scouting", "--no-shm",
-                   *LEASE]
+def _router(port: int, log: Path, connect: int | None = None) -> Proc:
+    args = ["router", "--no-multicast-scouting", "--no-shm", "-l", f"tcp/127.0.0.1:{port}", *LEASE]
+    if connect is not None:
+        args += ["-e", f"tcp/127.0.0.1:{connect}"]
+    return Proc(script("zoffload") + args, log)
+
+
+def _client_args(port: int) -> list[str]:
+    return ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--no-shm", *LEASE]
+
+
+@pytest.mark.parametrize("routers", [1, 2], ids=["one_router", "two_routers"])
+def test_three_robots_two_edges_one_killed(routers: int, free_port: int, tmp_path: Path) -> None:
+    from zoffload.runtime.session import free_tcp_port
+
+    procs = [_router(free_port, tmp_path / "router.log")]
+    edge_port = free_port
+    if routers == 2:  # the edges' router, linked to the robots' one
+        edge_port = free_tcp_port()
+        procs.append(_router(edge_port, tmp_path / "router2.log", connect=free_port))
+    client_args, edge_args = _client_args(free_port), _client_args(edge_port)
     edges: dict[str, Proc] = {}
     robots: dict[str, Proc] = {}
     try:
-        with client(free_port) as s:
+        if routers == 2:  # the edges' router must listen before the edges dial it
+            with client(edge_port):
+                pass
+        with client(free_port) as s:  # on the robots' router: edges seen across the link
             status = EdgeStatus(s)
             for e in EDGES:
-                edges[e] = start_edge(s, script("zoffload-edge") + client_args + ["--edge-id", e],
+                edges[e] = start_edge(s, script("zoffload-edge") + edge_args + ["--edge-id", e],
                                       tmp_path / f"{e}.log", edge_id=e)
             watchers = {r: StatusWatcher(s, KEYS, r) for r in ROBOTS}
             for i, r in enumerate(ROBOTS):
@@ -88,7 +110,8 @@ def test_three_robots_two_edges_one_killed(free_port: int, tmp_path: Path) -> No
         for p in [*robots.values(), *edges.values()]:
             if p.p.poll() is None:
                 p.sigint()
-        router.sigint()
+        for router in reversed(procs):
+            router.sigint()
     failovers = 0
     for r in ROBOTS:
         metrics = json.loads((tmp_path / r / "robot_metrics.json").read_text())

@@ -15,7 +15,7 @@ import zenoh
 
 from tests.helpers import KEYS, wait_for, wait_token
 from tests.system.procs import Proc, script
-from tests.system.secure import Deployment, deploy
+from tests.system.secure import Deployment, deploy, deploy_linked
 from zoffload.lab.runner import StatusWatcher
 from zoffload.protocol import wire
 from zoffload.runtime.errors import ZenohSessionError
@@ -205,4 +205,65 @@ def test_user_password_binds_to_the_certificate(free_port: int, tmp_path: Path) 
         for s in (mixed, good, monitor):
             s.close()
     finally:
+        assert d.stop() == 0
+
+
+def test_two_linked_routers_carry_a_robot_and_an_edge_and_keep_forgeries_out(
+        free_port: int, tmp_path: Path) -> None:
+    """The robots' router and the edges' (rack) router, linked with mTLS, each with the ACL: a
+    robot on one is mapped by an edge on the other; what an identity may not send is dropped at
+    its own router and does not cross the link."""
+    from zoffload.runtime.session import free_tcp_port
+
+    d = deploy_linked(tmp_path, (free_port, free_tcp_port()), ["robot1", "robot2"], ["edge1", "edge2"])
+    rack = d.linked[0][0]
+    edge = robot = None
+    sessions: list[zenoh.Session] = []
+    try:
+        monitor = open_session(d.settings("monitor"))  # on the robots' router
+        sessions.append(monitor)
+        edge = Proc(script("zoffload-edge") + d.args("edge1", rack), tmp_path / "edge.log")
+        wait_token(monitor, KEYS.edge_alive("edge1"), 60)  # the edge's token crossed the link
+        status = EdgeStatus(monitor)
+        robot = Proc(script("zoffload-robot") + d.args("robot1") + ["--max-scans", "30", "--out",
+                                                                     str(tmp_path / "robot")],
+                     tmp_path / "robot.log")
+        assert robot.wait(120) == 0, robot.text()
+        metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+        assert metrics["balanced"] and metrics["balance"]["acked"] >= 28, metrics["balance"]
+        assert metrics["fleet"]["per_edge"] == {"edge1": metrics["balance"]["acked"]}
+        before = metrics["balance"]["published"]
+        wait_for(lambda: status.values.get("samples") == before, 10, "the edge to count robot1's scans")
+
+        # robot1 on the robots' router forges robot2's scans and edge1's status; edge2 on the
+        # rack forges robot2's scans: each is dropped by the router it is connected to
+        attacker = open_session(d.settings("robot1"))
+        rogue_edge = open_session(d.settings("edge2", connect=[f"tls/localhost:{rack}"]))
+        victim = open_session(d.settings("robot2"))
+        sessions += [attacker, rogue_edge, victim]
+        got: list[bytes] = []
+        victim.declare_subscriber(KEYS.scan_ack("robot2"), lambda s: got.append(s.payload.to_bytes()))
+        statuses: list[bytes] = []  # edge1's status as it arrives, raw: a forged one would show here
+        monitor.declare_subscriber(KEYS.edge_status("edge1"), lambda s: statuses.append(s.payload.to_bytes()))
+        scan = wire.Scan(robot="robot2", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
+                         voxel_max=0.07, max_range=40.0, n_raw=10, points=np.zeros((10, 3), np.float32))
+        for _ in range(10):
+            attacker.put(KEYS.scan("robot2"), wire.encode(scan))
+            attacker.put(KEYS.edge_status("edge1"), b"forged")
+            rogue_edge.put(KEYS.scan("robot2"), wire.encode(scan))
+        victim.put(KEYS.scan("robot2"), wire.encode(scan))  # robot2's own scan crosses both routers
+        wait_for(lambda: len(got) == 1, 20, "the edge's answer to robot2's own scan")
+        time.sleep(1.5)
+        assert status.values["samples"] == before + 1  # nothing forged reached the edge
+        assert statuses and b"forged" not in statuses  # edge1's own statuses came, no forged one
+        assert len(got) == 1 and wire.decode(got[0], expect=wire.ScanAck).edge == "edge1"
+        edges = [str(r.ok.key_expr) for r in victim.liveliness().get(KEYS.any_edge_alive(), timeout=3)
+                 if r.ok is not None]
+        assert edges == [KEYS.edge_alive("edge1")]
+    finally:
+        for session in sessions:
+            session.close()
+        for p in (robot, edge):
+            if p is not None:
+                p.sigint()
         assert d.stop() == 0

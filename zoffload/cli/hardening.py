@@ -19,14 +19,15 @@ def _run_certs(a: argparse.Namespace) -> int:
     try:
         written = write_deployment(Path(a.out), a.robots, a.edges, a.monitors or [], a.router_names,
                                    a.listen, days=a.days, namespace=a.namespace, certs_path=a.certs_path,
-                                   passwords=a.passwords, lease_ms=a.lease_ms)
+                                   passwords=a.passwords, lease_ms=a.lease_ms, routers=a.routers,
+                                   router_connect=a.router_connect)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     for name, path in written.items():
         print(f"{name:>14}  {path}")
-    print(f"router: zoffload router -c {written['router.json5']}   (or zenohd -c ...)\n"
-          f"daemons: --tls-ca ca.pem --tls-cert ID.pem --tls-key ID.key "
-          f"-m client -e tls/<router>:<port>")
+    for router in a.routers:
+        print(f"router: zoffload router -c {written[router + '.json5']}   (or zenohd -c ...)")
+    print("daemons: --tls-ca ca.pem --tls-cert ID.pem --tls-key ID.key -m client -e tls/<router>:<port>")
     return ExitCode.OK
 
 
@@ -47,6 +48,12 @@ def add_certs(sub: Any) -> None:
                    "127.0.0.1; docker compose: router)")
     c.add_argument("--listen", nargs="+", default=["tls/0.0.0.0:7447"], metavar="ENDPOINT",
                    help="the router's endpoints (default tls/0.0.0.0:7447)")
+    c.add_argument("--routers", nargs="+", default=["router"], metavar="NAME",
+                   help="router names (default: one, 'router'): several make linked routers, e.g. one on "
+                   "the robots' network and one in the edges' rack, each with its own certificate and "
+                   "NAME.json5; the others connect to the first")
+    c.add_argument("--router-connect", default=None, metavar="ENDPOINT",
+                   help="where the other routers reach the first (default tls/FIRST:7447)")
     c.add_argument("--certs-path", default=None, metavar="DIR",
                    help="where the router finds these files at run time (default: --out; compose: "
                    "/etc/zoffload/certs)")

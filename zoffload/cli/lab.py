@@ -62,8 +62,8 @@ def _run_fleet(a: argparse.Namespace) -> int:
         result = run_fleet_experiment(FleetExperiment(
             out=a.out, robots=a.robots, edges=a.edges, events=a.events or "", traces=tuple(a.trace or ()),
             scans=a.scans, max_scans=a.max_scans, rate_hz=a.rate, repeat=a.repeat, baseline=a.baseline,
-            seed=a.seed, lease_ms=a.lease_ms, edge_workers=a.edge_workers, edge_flags=a.edge_flags,
-            robot_flags=a.robot_flags))
+            seed=a.seed, lease_ms=a.lease_ms, routers=a.routers, edge_workers=a.edge_workers,
+            edge_flags=a.edge_flags, robot_flags=a.robot_flags))
     except ScenarioError as exc:
         raise ConfigError(str(exc)) from exc
     labels = {key: label for label, key, _ in ROWS}
@@ -261,6 +261,9 @@ def add_experiment(sub: Any) -> None:
     fl.add_argument("--lease-ms", type=int, default=1000,
                     help="Zenoh lease every process announces (default 1000: a silent edge is gone "
                     "within 1 s)")
+    fl.add_argument("--routers", type=int, choices=(1, 2), default=1,
+                    help="1 (default): every process on one router; 2: the edges on a router of their own, "
+                    "linked to the robots' (every robot-edge message crosses both)")
     fl.add_argument("--edge-workers", type=int, default=None,
                     help="mapper threads per edge (default: one per core)")
     fl.add_argument("--edge-flags", default="",

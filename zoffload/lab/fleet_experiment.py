@@ -3,9 +3,11 @@ with scripted edge kills, drains and restarts, and optionally a link trace per r
 
 Processes: ``zoffload router`` on a free loopback port; M ``zoffload edge`` clients
 (``edge1`` ...) and N ``zoffload robot`` clients (``robot1`` ...), each robot either straight to
-the router or through its own ``zoffload link`` emulator. Multicast scouting and shared memory are
-off everywhere; every process announces a short Zenoh lease (``lease_ms``, default 1 s: the router
-notices a silent edge within it; a SIGKILLed one closes its TCP connection at once on loopback).
+the router or through its own ``zoffload link`` emulator. With ``routers=2`` the edges have a
+router of their own (``router2``, linked to the robots' one), as a rack's would be. Multicast
+scouting and shared memory are off everywhere; every process announces a short Zenoh lease
+(``lease_ms``, default 1 s: the router notices a silent edge within it; a SIGKILLed one closes its
+TCP connection at once on loopback).
 The event clock starts when every robot's liveliness token is seen. Robots replay the simulator
 (a different scene seed each, with ground truth) or a folder of scans (KITTI-360: the reference is
 KISS-ICP on every raw scan, as in ``experiment scan``).
@@ -63,6 +65,7 @@ class FleetExperiment:
     baseline: bool = False
     seed: int = 0
     lease_ms: int = 1000
+    routers: int = 1  # 2: the edges connect to a second router, linked to the robots'
     edge_workers: int | None = None
     edge_flags: str = ""  # extra flags for every edge, e.g. "--fleet.checkpoint-every 5"
     robot_flags: str = ""  # extra flags for every robot, e.g. "--fleet.no-attach"
@@ -121,6 +124,7 @@ class Fleet:
         self.exp, self.out, self.cpu = exp, out, sampler
         self.port = free_tcp_port()
         self.endpoint = loopback_endpoint(self.port)
+        self.edge_endpoint = self.endpoint if exp.routers == 1 else loopback_endpoint(free_tcp_port())
         self.lease = ["--cfg", f"transport/link/tx/lease:{exp.lease_ms}",
                       "--cfg", "transport/link/tx/keep_alive:4"]
         self.edges: dict[str, Spawned] = {}
@@ -134,15 +138,19 @@ class Fleet:
         self.cpu.add(name, p.proc.pid)
         return p
 
-    def start_router(self) -> Spawned:
-        router = self._spawn("router", ["router", *SESSION, "-l", self.endpoint, *self.lease])
-        self.others.append(router)
-        return router
+    def start_routers(self) -> list[Spawned]:
+        """The robots' router, and the edges' when there are two (linked to the first)."""
+        routers = [self._spawn("router", ["router", *SESSION, "-l", self.endpoint, *self.lease])]
+        if self.edge_endpoint != self.endpoint:
+            routers.append(self._spawn("router2", ["router", *SESSION, "-l", self.edge_endpoint,
+                                                   "-e", self.endpoint, *self.lease]))
+        self.others += routers
+        return routers
 
     def start_edge(self, edge: str) -> None:
         n = self.starts[edge] = self.starts.get(edge, 0) + 1
         name = edge if n == 1 else f"{edge}.{n}"
-        args = ["edge", *SESSION, "-m", "client", "-e", self.endpoint, *self.lease, "--edge-id", edge,
+        args = ["edge", *SESSION, "-m", "client", "-e", self.edge_endpoint, *self.lease, "--edge-id", edge,
                 "--map-dir", str(self.out / "edges" / name)]
         if self.exp.edge_workers:
             args += ["--mapper.workers", str(self.exp.edge_workers)]
@@ -202,11 +210,17 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
     rate = exp.rate_hz or 10.0
     limit = exp.max_scans / rate + 90
     try:
-        router = fleet.start_router()
-        session = connect_when_listening(loopback_zenoh(mode="client", connect=[fleet.endpoint]), router)
+        routers = fleet.start_routers()
+        session = connect_when_listening(loopback_zenoh(mode="client", connect=[fleet.endpoint]), routers[0])
         if session is None:
-            raise StartError("the router did not start:\n" + router.tail())
-        with session:
+            raise StartError("the router did not start:\n" + routers[0].tail())
+        if len(routers) > 1:  # the edges' router must listen before the edges dial it
+            probe = connect_when_listening(loopback_zenoh(mode="client", connect=[fleet.edge_endpoint]),
+                                           routers[1])
+            if probe is None:
+                raise StartError("the edges' router did not start:\n" + routers[1].tail())
+            probe.close()
+        with session:  # on the robots' router: the edges' tokens come across the router link
             for e in edges:
                 fleet.start_edge(e)
             for e in edges:
@@ -326,7 +340,9 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     ratio = fr.ate_ratio(agg, base_agg) if base_agg else None
     setup = (f"{exp.robots} robots × {exp.edges} edges, {exp.max_scans} scans per robot of {exp.scans}, "
              f"{exp.repeat} run(s); events: {exp.events or 'none'}; link traces: "
-             f"{', '.join(f'{r}={t}' for r, t in traces.items()) or 'none'}; Zenoh lease {exp.lease_ms} ms. "
+             f"{', '.join(f'{r}={t}' for r, t in traces.items()) or 'none'}; "
+             f"{'one router' if exp.routers == 1 else 'two routers (robots, edges)'}; "
+             f"Zenoh lease {exp.lease_ms} ms. "
              "Robot process CPU includes its simulated sensor; the robot's ms/scan excludes it.")
     text = fr.markdown("Fleet experiment", setup, agg, base_agg, per_robot, ratio, kills(events))
     (out / "report.md").write_text(text)

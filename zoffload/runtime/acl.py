@@ -15,6 +15,12 @@ egress: to it) and every rule key including the message's key (Zenoh checks incl
   ``alive/robot/*``. An edge cannot answer another edge's attach queries.
 * monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
   ``alive/**``; never put.
+* router P (another router linked to this one, holding P's certificate): what its robots' and
+  edges' traffic needs to cross the link, in both directions, for any robot and edge id: puts of
+  scans, frames, answers and statuses; subscription, queryable and liveliness declarations;
+  queries and replies on ``ctrl``; liveliness tokens under ``alive``. A router is trusted to hold
+  its own clients to their rules (each router enforces the per-identity rules of the clients that
+  connect to it), so P's key is worth every robot's and every edge's rights: keep it on P.
 * everyone: the router may tell a client which subscriptions and queryables exist under the
   namespace (egress ``declare_subscriber``/``declare_queryable``: metadata, never data). Without it
   a ``declare_publisher`` sees no subscriber and drops every put inside the client, silently.
@@ -95,10 +101,29 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
     ]
 
 
+def _router_rules(k: Keys, p: str) -> list[dict[str, Any]]:
+    data = [_wild(k.scan), _wild(k.frame), _wild(k.scan_ack), _wild(k.detections), _wild(k.checkpoint),
+            f"{k.ns}/status/**"]
+    ctrl = [k.all_maps(), k.all_pings(), _wild(k.all_attaches)]
+    alive = [k.any_robot_alive(), k.any_edge_alive()]
+    rules = []
+    for flow in ("ingress", "egress"):
+        rules += [
+            _rule(f"router_{p}_{flow}_put", flow, ["put"], data),
+            _rule(f"router_{p}_{flow}_declare", flow, ["declare_subscriber", "declare_queryable"],
+                  [f"{k.ns}/**"]),
+            _rule(f"router_{p}_{flow}_ctrl", flow, ["query", "reply"], ctrl),
+            _rule(f"router_{p}_{flow}_alive", flow, ["liveliness_token", "declare_liveliness_subscriber",
+                                                     "liveliness_query"], alive),
+        ]
+    return rules
+
+
 def access_control(keys: Keys, robots: Sequence[str], edges: Sequence[str], monitors: Sequence[str] = (),
-                   usernames: bool = False) -> dict[str, Any]:
-    """The ``access_control`` section of the router's config for these identities."""
-    names = [*robots, *edges, *monitors]
+                   usernames: bool = False, routers: Sequence[str] = ()) -> dict[str, Any]:
+    """The ``access_control`` section of the router's config for these identities; ``routers``:
+    the other routers linked to this one (their certificates' common names)."""
+    names = [*robots, *edges, *monitors, *routers]
     for name in names:
         check_id(name, "identity")
     if len(set(names)) != len(names):
@@ -108,12 +133,12 @@ def access_control(keys: Keys, robots: Sequence[str], edges: Sequence[str], moni
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for kind, ids, make in (("robot", robots, _robot_rules), ("edge", edges, _edge_rules),
-                            ("monitor", monitors, _monitor_rules)):
+                            ("monitor", monitors, _monitor_rules), ("router", routers, _router_rules)):
         for name in ids:
             own = make(keys, name)
             rules += own
             subject: dict[str, Any] = {"id": f"{kind}_{name}", "cert_common_names": [name]}
-            if usernames:
+            if usernames and kind != "router":  # routers authenticate by certificate alone
                 subject["usernames"] = [name]
             subjects.append(subject)
             policies.append({"id": f"{kind}_{name}", "subjects": [subject["id"]],
@@ -123,11 +148,14 @@ def access_control(keys: Keys, robots: Sequence[str], edges: Sequence[str], moni
 
 
 def router_config(listen: Sequence[str], ca: str, cert: str, key: str, acl: dict[str, Any],
-                  lease_ms: int = 2000, users_file: str | None = None) -> dict[str, Any]:
+                  lease_ms: int = 2000, users_file: str | None = None,
+                  connect: Sequence[str] = ()) -> dict[str, Any]:
     """A router that speaks TLS only, requires client certificates and enforces ``acl``.
 
     ``lease_ms`` is the router's own lease: clients notice a dead router within it (each node
-    announces its own lease, so robots and edges set theirs too)."""
+    announces its own lease, so robots and edges set theirs too). ``connect``: other routers to
+    link to; the link presents ``cert`` (its common name is what their access control sees) and
+    checks the other router's name against its certificate, as clients do."""
     link: dict[str, Any] = {
         "protocols": ["tls"],  # no plain tcp listener: unauthenticated clients cannot even connect
         "tls": {"root_ca_certificate": ca, "listen_certificate": cert, "listen_private_key": key,
@@ -138,6 +166,6 @@ def router_config(listen: Sequence[str], ca: str, cert: str, key: str, acl: dict
     transport: dict[str, Any] = {"link": link}
     if users_file:
         transport["auth"] = {"usrpwd": {"dictionary_file": users_file}}
-    return {"mode": "router", "listen": {"endpoints": list(listen)}, "connect": {"endpoints": []},
+    return {"mode": "router", "listen": {"endpoints": list(listen)}, "connect": {"endpoints": list(connect)},
             "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
             "transport": transport, "access_control": acl}

@@ -11,6 +11,12 @@ present, so adding a robot later leaves the others' certificates valid), ``<id>.
 for every identity, ``router.pem``/``router.key``, the router's ``router.json5`` (TLS, mTLS and
 the access control of runtime/acl.py), and, with ``passwords``, ``<id>.password`` per identity and
 the router's ``users.txt`` for Zenoh's user/password authentication bound to the certificates.
+
+Several routers (``routers``, e.g. one on the robots' network and one in the edges' rack): each
+gets ``<name>.pem``/``.key`` (common name = its name, SAN = ``router_names`` plus its name) and
+``<name>.json5``. Every router's access control knows every robot, edge and monitor (a client may
+connect to any of them) and the other routers as linked peers; every router after the first
+connects to ``router_connect`` (default ``tls/<first router>:7447``).
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import ipaddress
 import json
 import os
 import secrets
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,10 +148,26 @@ def write_deployment(out: Path, robots: Sequence[str], edges: Sequence[str], mon
                      router_names: Sequence[str] = ("localhost", "127.0.0.1"),
                      listen: Sequence[str] = ("tls/0.0.0.0:7447",), days: int = 365,
                      namespace: str = "zoffload", certs_path: str | None = None, passwords: bool = False,
-                     lease_ms: int = 2000) -> dict[str, Path]:
+                     lease_ms: int = 2000, routers: Sequence[str] = ("router",),
+                     router_listen: Mapping[str, Sequence[str]] | None = None,
+                     router_connect: str | None = None) -> dict[str, Path]:
     """Write a deployment's certificates and router config to ``out`` (see the module docstring);
-    ``certs_path``: where the router will find these files (default: ``out`` itself). Returns the
-    files written by name."""
+    ``certs_path``: where the router will find these files (default: ``out`` itself);
+    ``router_listen``: a router's own endpoints instead of ``listen`` (several routers on one
+    host). Returns the files written by name."""
+    routers = list(routers)
+    if not routers or len(set(routers)) != len(routers):
+        raise ValueError(f"name one router or more, each once: {routers}")
+    clash = set(routers) & {*robots, *edges, *monitors}
+    if clash:
+        raise ValueError(f"a router cannot share its name with a robot, edge or monitor: {sorted(clash)}")
+    reserved = {"ca", "users"} & {*routers, *robots, *edges, *monitors}
+    if reserved:
+        raise ValueError(f"names kept for the CA and the users file: {sorted(reserved)}")
+    if passwords and len(routers) > 1:
+        # Zenoh's user/password check refuses a link that brings no credentials, and a router
+        # dialling another has none: linked routers authenticate by certificate alone
+        raise ValueError("passwords (usrpwd) work with one router; linked routers use certificates only")
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
     ca_cert, ca_key = out / "ca.pem", out / "ca.key"
@@ -157,7 +179,9 @@ def write_deployment(out: Path, robots: Sequence[str], edges: Sequence[str], mon
     written["ca"] = ca_cert
     for name in [*robots, *edges, *monitors]:
         written[name] = write_pair(out, name, make_leaf(ca, name, days))[0]
-    written["router"] = write_pair(out, "router", make_leaf(ca, "router", days, router_names))[0]
+    for router in routers:
+        names = [*router_names, *([router] if router not in router_names else [])]
+        written[router] = write_pair(out, router, make_leaf(ca, router, days, names))[0]
     where = certs_path or str(out.resolve())
     users = None
     if passwords:
@@ -175,9 +199,14 @@ def write_deployment(out: Path, robots: Sequence[str], edges: Sequence[str], mon
             f.write("\n".join(lines) + "\n")
         written["users"] = users_path
         users = f"{where}/users.txt"
-    acl = access_control(Keys(namespace), robots, edges, monitors, usernames=passwords)
-    conf = router_config(listen, f"{where}/ca.pem", f"{where}/router.pem", f"{where}/router.key", acl,
-                         lease_ms=lease_ms, users_file=users)
-    written["router.json5"] = out / "router.json5"
-    written["router.json5"].write_text(HEADER + json.dumps(conf, indent=2) + "\n")
+    first = routers[0]
+    link = router_connect or f"tls/{first}:7447"
+    for router in routers:
+        peers = [r for r in routers if r != router]
+        acl = access_control(Keys(namespace), robots, edges, monitors, usernames=passwords, routers=peers)
+        conf = router_config((router_listen or {}).get(router, listen), f"{where}/ca.pem",
+                             f"{where}/{router}.pem", f"{where}/{router}.key", acl, lease_ms=lease_ms,
+                             users_file=users, connect=[link] if router != first else [])
+        written[f"{router}.json5"] = out / f"{router}.json5"
+        written[f"{router}.json5"].write_text(HEADER + json.dumps(conf, indent=2) + "\n")
     return written

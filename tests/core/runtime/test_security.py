@@ -117,6 +117,40 @@ def test_certificates_chain_to_the_ca_with_the_identity_as_common_name(tmp_path:
     assert x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes()) == ca
 
 
+def test_linked_routers_each_get_a_certificate_a_config_and_the_other_as_a_peer(tmp_path: Path) -> None:
+    pytest.importorskip("cryptography")
+    from cryptography import x509
+
+    from zoffload.runtime.certs import write_deployment
+
+    written = write_deployment(tmp_path, ["robot1"], ["edge1"], routers=["router", "rack"],
+                               router_names=["localhost"])
+    confs = {}
+    for r in ("router", "rack"):
+        text = written[f"{r}.json5"].read_text()
+        confs[r] = json.loads("\n".join(ln for ln in text.splitlines() if not ln.startswith("//")))
+        cert = x509.load_pem_x509_certificate((tmp_path / f"{r}.pem").read_bytes())
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        assert san.get_values_for_type(x509.DNSName) == ["localhost", r]  # dialled by its own name too
+        assert confs[r]["transport"]["link"]["tls"]["connect_certificate"].endswith(f"/{r}.pem")
+    assert confs["router"]["connect"]["endpoints"] == []
+    assert confs["rack"]["connect"]["endpoints"] == ["tls/router:7447"]
+    for r, other in (("router", "rack"), ("rack", "router")):
+        acl = confs[r]["access_control"]
+        peer = next(p for p in acl["policies"] if p["id"] == f"router_{other}")
+        rules = {rule["id"]: rule for rule in acl["rules"]}
+        allowed = {(f, m) for rid in peer["rules"]
+                   for f in rules[rid]["flows"] for m in rules[rid]["messages"]}
+        # what crossed the link in the two-router check, both ways: data, declarations, queries, tokens
+        for flow in ("ingress", "egress"):
+            for message in ("put", "declare_subscriber", "declare_queryable", "query", "reply",
+                            "liveliness_token"):
+                assert (flow, message) in allowed, (r, flow, message)
+        assert {s["id"] for s in acl["subjects"]} == {"robot_robot1", "edge_edge1", f"router_{other}"}
+    with pytest.raises(ValueError, match="share its name"):
+        write_deployment(tmp_path, ["robot1"], ["edge1"], routers=["router", "edge1"])
+
+
 def test_tls_settings_become_zenoh_keys(tmp_path: Path) -> None:
     for name in ("ca.pem", "me.pem", "me.key", "pw"):
         (tmp_path / name).write_text("secret\n" if name == "pw" else "x")
