@@ -6,7 +6,11 @@ Each sample: per process (psutil on the child's pid) RSS, threads, open file des
 produced, published, acked, lost, in flight, frames; edge: samples, registered, drops, robots, map
 points). Written to ``soak.csv`` as they come, plotted to ``soak.png``, summarised in
 ``soak.json``: each process's RSS growth after ``warmup`` (the map budget filling) as a fraction
-of its RSS then, the thread and fd ranges after warmup, the robot's counters balanced. The
+of its RSS then, and again from the time the robot's record rings are full (``rings_full_s``:
+``keep_records`` scans, ``keep_frames`` frames: memory the robot is meant to fill); each RSS
+figure is the median of a window of samples (up to 5 minutes), not one sample, because the
+periodic heap trim makes RSS saw-toothed. Also the thread and fd ranges after warmup and the
+robot's counters balanced. The
 robot replays its scans forth and back (``pingpong``: a continuous drive, where a loop would jump
 from the last scan to the first and derail the edge's odometry once a lap) at ``rate_hz``, and
 the camera its images in a loop, so the run is as long as asked.
@@ -62,6 +66,10 @@ class SoakSummary:
     exit_codes: dict[str, int | None] = field(default_factory=dict)
     rss_growth: dict[str, float] = field(default_factory=dict)  # fraction after warmup
     rss_mb: dict[str, tuple[float, float]] = field(default_factory=dict)  # at warmup, at the end
+    rings_full_s: float | None = None  # when the robot's record rings are full (None: after the run)
+    rss_growth_full: dict[str, float] = field(default_factory=dict)  # fraction after rings_full_s
+    rss_mb_full: dict[str, tuple[float, float]] = field(default_factory=dict)
+    rss_max_mb: dict[str, float] = field(default_factory=dict)  # after warmup
     threads: dict[str, tuple[int, int]] = field(default_factory=dict)  # min, max after warmup
     fds: dict[str, tuple[int, int]] = field(default_factory=dict)
     balanced: bool | None = None
@@ -75,7 +83,12 @@ class SoakSummary:
         parts = [f"soak {self.duration_s:.0f} s, {self.samples} samples (growth after {self.warmup_s:.0f} s)"]
         for name in self.rss_growth:
             a, b = self.rss_mb[name]
-            parts.append(f"{name}: RSS {a:.0f} -> {b:.0f} MB ({100 * self.rss_growth[name]:+.1f} %), "
+            full = ""
+            if name in self.rss_growth_full:
+                fa, fb = self.rss_mb_full[name]
+                full = (f" (rings full at {self.rings_full_s:.0f} s: {fa:.0f} -> {fb:.0f} MB, "
+                        f"{100 * self.rss_growth_full[name]:+.1f} %)")
+            parts.append(f"{name}: RSS {a:.0f} -> {b:.0f} MB ({100 * self.rss_growth[name]:+.1f} %){full}, "
                          f"threads {self.threads[name][0]}-{self.threads[name][1]}, "
                          f"fds {self.fds[name][0]}-{self.fds[name][1]}")
         parts.append(f"robot balanced: {self.balanced}; exit codes {self.exit_codes}")
@@ -216,12 +229,21 @@ def _summarise(rows: list[dict[str, float]], opts: SoakOptions, warmup: float, c
     s = SoakSummary(duration_s=rows[-1]["t"] if rows else 0.0, samples=len(rows), warmup_s=warmup,
                     camera=camera, exit_codes=codes)
     after = [r for r in rows if r["t"] >= warmup] or rows
+    full = rings_full(opts, camera)
+    late = [r for r in rows if r["t"] >= full]
+    s.rings_full_s = full if len(late) >= 4 else None
     for name in ("edge", "robot"):
         rss = [r[f"{name}.rss_mb"] for r in after if f"{name}.rss_mb" in r]
         if not rss:
             continue
-        s.rss_mb[name] = (rss[0], rss[-1])
-        s.rss_growth[name] = (rss[-1] - rss[0]) / rss[0]
+        s.rss_mb[name] = growth_window(rss, opts.period)
+        s.rss_growth[name] = (s.rss_mb[name][1] - s.rss_mb[name][0]) / s.rss_mb[name][0]
+        s.rss_max_mb[name] = max(rss)
+        late_rss = [r[f"{name}.rss_mb"] for r in late if f"{name}.rss_mb" in r]
+        if s.rings_full_s is not None and len(late_rss) >= 4:
+            s.rss_mb_full[name] = growth_window(late_rss, opts.period)
+            a, b = s.rss_mb_full[name]
+            s.rss_growth_full[name] = (b - a) / a
         threads = [int(r[f"{name}.threads"]) for r in after if f"{name}.threads" in r]
         fds = [int(r[f"{name}.fds"]) for r in after if f"{name}.fds" in r]
         s.threads[name] = (min(threads), max(threads))
@@ -231,6 +253,28 @@ def _summarise(rows: list[dict[str, float]], opts: SoakOptions, warmup: float, c
         m = json.loads(metrics.read_text())
         s.balanced, s.balance = m.get("balanced"), m.get("balance", {})
     return s
+
+
+def rings_full(opts: SoakOptions, camera: bool) -> float:
+    """Seconds until the robot's in-memory record rings are full at the soak's rates (scans,
+    and frames when the camera runs): its RSS is meant to grow until then."""
+    from zoffload.robot.camera import CameraOptions
+    from zoffload.robot.scans import StreamOptions
+
+    full = StreamOptions.keep_records / opts.rate_hz
+    if camera and opts.fps > 0:
+        full = max(full, CameraOptions.keep_frames / opts.fps)
+    return full
+
+
+def growth_window(rss: list[float], period: float, window: float = 300.0) -> tuple[float, float]:
+    """(median RSS of the first ``window`` seconds, of the last): RSS saw-tooths between heap
+    trims, so one sample at each end would measure where in a tooth it fell. The window shrinks
+    to a quarter of the series when that is shorter."""
+    import statistics
+
+    n = max(1, min(int(window / period), len(rss) // 4))
+    return statistics.median(rss[:n]), statistics.median(rss[-n:])
 
 
 def plot_soak(path: Path, rows: list[dict[str, float]], warmup: float) -> Path:
