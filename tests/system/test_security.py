@@ -43,6 +43,22 @@ def forged_ack(robot: str, seq: int, stamp: float) -> bytes:
                                     sigma=0.1, pose=np.eye(4), edge="edge1"))
 
 
+def robot1_mapped_by_edge1(d: Deployment, tmp_path: Path, monitor: zenoh.Session, procs: list[Proc],
+                           edge_port: int | None = None) -> tuple[EdgeStatus, dict]:
+    """A real edge1 (on the router at ``edge_port``, default the first) and a real robot1 (on the
+    first) sending 30 scans through the secure deployment; returns the edge's status watcher and
+    the robot's metrics. Both processes go into ``procs`` as they start, for the caller to stop."""
+    procs.append(Proc(script("zoffload-edge") + d.args("edge1", edge_port), tmp_path / "edge.log"))
+    wait_token(monitor, KEYS.edge_alive("edge1"), 60)
+    status = EdgeStatus(monitor)
+    robot = Proc(script("zoffload-robot") + d.args("robot1") + ["--max-scans", "30", "--out",
+                                                                 str(tmp_path / "robot")],
+                 tmp_path / "robot.log")
+    procs.append(robot)
+    assert robot.wait(120) == 0, robot.text()
+    return status, json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+
+
 def refused(d: Deployment, **over: object) -> bool:
     try:
         open_session(d.settings(**over)).close()  # type: ignore[arg-type]
@@ -70,17 +86,10 @@ def test_unauthenticated_clients_are_refused(free_port: int, tmp_path: Path) -> 
 def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
         free_port: int, tmp_path: Path) -> None:
     d = deploy(tmp_path, free_port, ["robot1", "robot2"], ["edge1"])
-    edge = robot = None
+    procs: list[Proc] = []
     try:
         monitor = open_session(d.settings("monitor"))
-        edge = Proc(script("zoffload-edge") + d.args("edge1"), tmp_path / "edge.log")
-        wait_token(monitor, KEYS.edge_alive("edge1"), 60)
-        status = EdgeStatus(monitor)
-        robot = Proc(script("zoffload-robot") + d.args("robot1") + ["--max-scans", "30", "--out",
-                                                                     str(tmp_path / "robot")],
-                     tmp_path / "robot.log")
-        assert robot.wait(120) == 0, robot.text()
-        metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+        status, metrics = robot1_mapped_by_edge1(d, tmp_path, monitor, procs)
         assert metrics["balanced"] and metrics["balance"]["acked"] >= 28  # TLS + ACL: the path works
 
         # robot1's identity, in a session of its own: nothing it forges reaches anyone
@@ -117,9 +126,8 @@ def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
         for s in (attacker, spy, victim, monitor):
             s.close()
     finally:
-        for p in (robot, edge):
-            if p is not None:
-                p.sigint()
+        for p in reversed(procs):  # the robot, then the edge
+            p.sigint()
         assert d.stop() == 0
 
 
@@ -217,19 +225,12 @@ def test_two_linked_routers_carry_a_robot_and_an_edge_and_keep_forgeries_out(
 
     d = deploy_linked(tmp_path, (free_port, free_tcp_port()), ["robot1", "robot2"], ["edge1", "edge2"])
     rack = d.linked[0][0]
-    edge = robot = None
+    procs: list[Proc] = []
     sessions: list[zenoh.Session] = []
     try:
-        monitor = open_session(d.settings("monitor"))  # on the robots' router
-        sessions.append(monitor)
-        edge = Proc(script("zoffload-edge") + d.args("edge1", rack), tmp_path / "edge.log")
-        wait_token(monitor, KEYS.edge_alive("edge1"), 60)  # the edge's token crossed the link
-        status = EdgeStatus(monitor)
-        robot = Proc(script("zoffload-robot") + d.args("robot1") + ["--max-scans", "30", "--out",
-                                                                     str(tmp_path / "robot")],
-                     tmp_path / "robot.log")
-        assert robot.wait(120) == 0, robot.text()
-        metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
+        monitor = open_session(d.settings("monitor"))  # on the robots' router: edge1's token and
+        sessions.append(monitor)  # status come across the link
+        status, metrics = robot1_mapped_by_edge1(d, tmp_path, monitor, procs, edge_port=rack)
         assert metrics["balanced"] and metrics["balance"]["acked"] >= 28, metrics["balance"]
         assert metrics["fleet"]["per_edge"] == {"edge1": metrics["balance"]["acked"]}
         before = metrics["balance"]["published"]
@@ -263,7 +264,6 @@ def test_two_linked_routers_carry_a_robot_and_an_edge_and_keep_forgeries_out(
     finally:
         for session in sessions:
             session.close()
-        for p in (robot, edge):
-            if p is not None:
-                p.sigint()
+        for p in reversed(procs):  # the robot, then the edge
+            p.sigint()
         assert d.stop() == 0

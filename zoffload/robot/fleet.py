@@ -176,11 +176,7 @@ class FleetState:
         """Whether the robot's edge is late answering by more than ``after`` s (the robot then
         bridges with local odometry; ``silent`` decides the move, later)."""
         with self._lock:
-            if self.assignment.state != ATTACHED:
-                return False
-            waited = self._waiting_since is not None and now - self._waiting_since > after
-            stalled = self._in_flight and self._last_ack is not None and now - self._last_ack > 2 * after
-            return waited or stalled
+            return self.assignment.state == ATTACHED and self._silent_since(now) > after
 
     # The fleet thread
     def silent(self, now: float) -> bool:

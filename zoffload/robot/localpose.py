@@ -79,14 +79,15 @@ class PoseKeeper:
         with self.lock:
             recent = [r.get("rtt") for r in islice(reversed(self.ledger.records.values()), 20)]
         rtts = [x for x in recent if isinstance(x, float)]
-        rtt = float(np.median(rtts)) if rtts else 0.0
+        return self._threshold_for(float(np.median(rtts)) if rtts else 0.0)
+
+    def _threshold_for(self, rtt: float) -> float:
         return min(max(2.0 * self.period, 2.0 * rtt), 0.5 * self.failover_after)
 
     def _overdue(self, now: float) -> bool:
         """Whether the edge is late by more than ``threshold``; the round trips are looked at only
         once it is late by the least the threshold can be (nearly every scan stops there)."""
-        floor = (self.bridge_after if self.bridge_after is not None
-                 else min(2.0 * self.period, 0.5 * self.failover_after))
+        floor = self.bridge_after if self.bridge_after is not None else self._threshold_for(0.0)
         return self.fleet.overdue(now, floor) and self.fleet.overdue(now, self.threshold())
 
     def no_edge(self, reading: Reading, record: dict[str, Any]) -> bool:
