@@ -10,13 +10,15 @@ For each sensor (the simulator's VLP-16, 28k points; the real KITTI-360 HDL-64, 
    pipeline's own measurement (``robot_metrics.json`` ``cpu.per_scan_ms``): thread CPU time of the
    sensor loop and the sender thread for each scan sent, median.
 3. **The robot process's whole CPU per scan**: ``zoffload-robot`` as its own process against the
-   edge for N and then 2N scans, its CPU time (user + system, from ``os.wait4``) differenced, so
-   start-up cancels out; the sensor thread's own CPU (reading files, or ray casting the
-   simulator) is reported and taken out for the simulator, whose sensor runs in the robot's process
-   only because it is simulated.
+   edge for N scans, 3 runs; the figure is the process's own steady-state window
+   (``robot_metrics.json`` ``cpu.steady_process_ms_per_scan``: process CPU time, every thread,
+   Zenoh's included, from its 10th scan read to its last, so start-up and the final drain are left
+   out), mean and spread over the runs. The sensor thread's own CPU (reading files, or ray casting
+   the simulator) is taken out: a real sensor's driver is not offloading work. A cross-check,
+   ``os.wait4``'s whole-run CPU per scan (start-up included), is printed beside it.
 
-Run: python -m benchmarks.bench_robot_cost [--scans 100] [--process 100] [--sensors sim kitti]
-     [--cases defaults baseline ...]   (about 6 minutes with the defaults)
+Run: python -m benchmarks.bench_robot_cost [--scans 100] [--process 200] [--repeats 3]
+     [--sensors sim kitti] [--cases defaults baseline ...]   (about 9 minutes with the defaults)
 """
 
 from __future__ import annotations
@@ -119,14 +121,15 @@ def process_cpu(sensor: str, n: int, over: dict[str, Any], edge_port: int) -> di
             sys.exit(f"zoffload-robot exited with {p.returncode}")
         m = json.loads((Path(tmp) / "robot_metrics.json").read_text())
     return {"cpu_s": usage.ru_utime + usage.ru_stime, "sensor_s": m["cpu"]["sensor_s"],
-            "produced": m["balance"]["produced"]}
+            "produced": m["balance"]["produced"], "steady_ms": m["cpu"]["steady_process_ms_per_scan"]}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scans", type=int, default=100, help="scans per offload run (default 100, at 10 Hz)")
-    ap.add_argument("--process", type=int, default=100,
-                    help="N of the process runs (N and 2N scans; default 100; 0 = skip)")
+    ap.add_argument("--process", type=int, default=200,
+                    help="scans per robot process run (default 200; 0 = skip)")
+    ap.add_argument("--repeats", type=int, default=3, help="robot process runs per case (default 3)")
     ap.add_argument("--sensors", nargs="+", default=["sim", "kitti"], choices=["sim", "kitti"])
     ap.add_argument("--cases", nargs="+", default=[c[0] for c in CASES], choices=[c[0] for c in CASES])
     a = ap.parse_args()
@@ -156,17 +159,20 @@ def main() -> None:
                       f"{c['p95_per_scan_ms']:6.2f} {c['loop_ms']:6.2f} {c['send_ms']:6.2f} "
                       f"{100 * c['per_scan_ms'] / kiss:9.1f} %")
             if a.process:
-                n2 = 2 * a.process
-                print(f"robot process, whole CPU per scan ({a.process} and {n2} scans differenced):")
+                print(f"robot process, whole CPU per scan in steady state ({a.process} scans, "
+                      f"{a.repeats} runs, the sensor thread's own CPU taken out):")
                 for key in ("defaults", "baseline"):
                     over = next(c[2] for c in CASES if c[0] == key)
-                    one, two = (process_cpu(sensor, n, over, edge_port) for n in (a.process, 2 * a.process))
-                    per = (two["cpu_s"] - one["cpu_s"]) / (two["produced"] - one["produced"]) * 1e3
-                    sens = (two["sensor_s"] - one["sensor_s"]) / (two["produced"] - one["produced"]) * 1e3
-                    own = per - sens if sensor == "sim" else per
-                    print(f"  {key:12}: {per:6.2f} ms per scan, of which the sensor thread {sens:5.2f} ms; "
-                          f"{'without the simulated sensor' if sensor == 'sim' else 'whole'} {own:6.2f} ms "
-                          f"= {100 * own / kiss:5.1f} % of KISS-ICP")
+                    runs = [process_cpu(sensor, a.process, over, edge_port) for _ in range(a.repeats)]
+                    steady = [r["steady_ms"] for r in runs if r["steady_ms"] is not None]
+                    whole = [1e3 * (r["cpu_s"] - r["sensor_s"]) / max(1, r["produced"]) for r in runs]
+                    if not steady:
+                        print(f"  {key:12}: no steady-state window (fewer than 11 scans read)")
+                        continue
+                    mean, sd = statistics.mean(steady), statistics.pstdev(steady)
+                    print(f"  {key:12}: {mean:6.2f} ± {sd:4.2f} ms per scan = {100 * mean / kiss:5.1f} % of "
+                          f"KISS-ICP (runs: {', '.join(f'{x:.2f}' for x in steady)}; whole run with "
+                          f"start-up {statistics.mean(whole):.2f} ms)")
     finally:
         stop(edge)
 

@@ -58,6 +58,7 @@ from zoffload.sources import ScanSource, open_scan_source
 
 log = logging.getLogger("zoffload.robot.scans")
 
+STEADY_AFTER = 10  # scans read before the process's steady-state CPU window opens (robot_metrics.json)
 DELIBERATE = ("pace", "skip", "stall")  # scans the policy chose not to send: announced in ``skipped``
 
 
@@ -358,6 +359,8 @@ class ScanStreamer:
             self.fleet.wait_settled(o.attach_timeout + 0.5)
         sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
         p0, w0 = time.process_time(), time.monotonic()
+        steady: tuple[float, float, int] | None = None  # (process CPU, sensor CPU, scans) once warm
+        n_read = 0
         sensor.start()
         try:
             while not self.stop.is_set():
@@ -374,6 +377,9 @@ class ScanStreamer:
                     continue
                 with self._lock:
                     self.ledger.produced()
+                n_read += 1
+                if n_read == STEADY_AFTER:
+                    steady = (time.process_time(), sensor.cpu_s, n_read)
                 try:
                     self.process(reading)
                 except Exception as exc:  # one bad scan must not end the run
@@ -385,9 +391,15 @@ class ScanStreamer:
             with self._lock:
                 self.ledger.counters["read_errors"] += sensor.read_errors
                 self._book_overwrites(sensor)
+            p1, s1 = time.process_time(), sensor.cpu_s
             self._drain()
             self._cpu = {"process_s": time.process_time() - p0, "sensor_s": sensor.cpu_s,
                          "wall_s": time.monotonic() - w0}
+            if steady is not None and n_read > steady[2]:
+                # the process from its STEADY_AFTER-th scan to its last read: start-up (imports,
+                # compiling, connecting) and the final drain left out
+                self._cpu.update(steady_process_s=p1 - steady[0], steady_sensor_s=s1 - steady[1],
+                                 steady_scans=n_read - steady[2])
 
     def _book_overwrites(self, sensor: SensorThread) -> None:
         """Scans the sensor replaced before the loop took them: produced, dropped at source."""
@@ -491,6 +503,9 @@ def cpu_summary(totals: ScanTotals, process: dict[str, float], produced: int) ->
     the sensor's) with the sensor thread's own share (a replayed or simulated sensor is not
     offloading work) taken out."""
     own = process["process_s"] - process["sensor_s"]
+    n_steady = process.get("steady_scans", 0)
+    steady = (1e3 * (process["steady_process_s"] - process["steady_sensor_s"]) / n_steady if n_steady
+              else None)
     return {
         "per_scan_ms": totals.cpu.quantile(0.5),  # median over scans sent (1 % histogram bins)
         "mean_per_scan_ms": totals.cpu.mean(),
@@ -502,6 +517,10 @@ def cpu_summary(totals: ScanTotals, process: dict[str, float], produced: int) ->
         "sensor_s": process["sensor_s"],
         "wall_s": process["wall_s"],
         "process_ms_per_scan": 1e3 * own / produced if produced else None,
+        # the same, in steady state: from the STEADY_AFTER-th scan read to the last (start-up and
+        # the final drain left out), the sensor thread's own CPU taken out
+        "steady_process_ms_per_scan": steady,
+        "steady_scans": n_steady,
     }
 
 

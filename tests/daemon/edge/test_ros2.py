@@ -116,6 +116,8 @@ def test_odometry_tf_detections_and_latched_map(service: tuple) -> None:
     edge.put(KEYS.frame("robot1"), wire.encode(wire.Frame(
         robot="robot1", seq=9, send_stamp=1.0, capture_stamp=1700000001.25, encoding="bgr8", width=2,
         height=1, data=np.zeros(6, np.uint8))))
+    # as on a real edge, the frame is in before its detections (inference takes milliseconds)
+    wait_for(lambda: ("robot1", "frame", 9) in svc._stamps, what="frame 9's stamp")
     edge.put(KEYS.detections("robot1"), wire.encode(wire.Detections(
         robot="robot1", seq=9, send_stamp=1.0, edge="edge1", model="picodet-s", status="ok", infer_time=0.01,
         queue_time=0.0, batch=1, boxes=np.array([[10, 20, 30, 60]], np.float32),
