@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from zoffload.mapping.se3 import as_rigid
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 
@@ -41,8 +42,8 @@ def seed(odometry: Any, checkpoint: wire.Checkpoint) -> None:
     configuration: its local map, last pose and last motion."""
     if len(checkpoint.points):
         odometry.local_map.add_points(np.asarray(checkpoint.points, np.float64))
-    odometry.last_pose = np.array(checkpoint.pose, np.float64)
-    odometry.last_delta = np.array(checkpoint.delta, np.float64)
+    odometry.last_pose = as_rigid(checkpoint.pose)  # (Sophus aborts on a rotation off by 1e-10)
+    odometry.last_delta = as_rigid(checkpoint.delta)
 
 
 def config_matches(odometry: Any, checkpoint: wire.Checkpoint) -> bool:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from zoffload.mapping.checkpoint import config_matches, seed
-from zoffload.mapping.se3 import se3_power
+from zoffload.mapping.se3 import as_rigid, se3_power
 from zoffload.mapping.voxelset import VoxelSet
 
 if TYPE_CHECKING:
@@ -126,13 +126,13 @@ class RobotMapper:
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
         if stretch:
-            self.odometry.last_delta = se3_power(self.odometry.last_delta, gap)
+            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
         # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
         frame_out, keypoints = self.odometry.register_frame(frame, stamps)
         if len(stamps):
             frame = np.asarray(frame_out)
         if stretch:
-            self.odometry.last_delta = se3_power(self.odometry.last_delta, 1.0 / gap)
+            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
         # Grow the global map with the scan in world coordinates
@@ -165,7 +165,7 @@ class RobotMapper:
                 log.info("checkpoint of %s from a mapper configured otherwise (voxel %.3f m): keeping "
                          "this mapper's local map, continuing from its pose", checkpoint.robot,
                          checkpoint.voxel_size)
-                self.odometry.last_pose = np.array(checkpoint.pose, np.float64)
+                self.odometry.last_pose = as_rigid(checkpoint.pose)
             else:
                 if not matches:
                     log.warning("checkpoint of %s made by a mapper configured otherwise (voxel %.3f m, "
@@ -183,7 +183,7 @@ class RobotMapper:
             self.seqs.append(int(s))
             self.poses.append(p.copy())
         if newer.any():
-            self.odometry.last_pose = poses[newer][-1].copy()
+            self.odometry.last_pose = as_rigid(poses[newer][-1])
             self.last_seq = int(seqs[newer][-1])
         return seeded
 

@@ -36,3 +36,21 @@ def se3_power(T: np.ndarray, a: float) -> np.ndarray:
     out[:3, :3] = Ra
     out[:3, 3] = Va @ (a * rho)
     return out
+
+
+def as_rigid(T: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
+    """The rigid motion nearest ``T`` (rotation through an SVD, determinant +1; last row exactly
+    0 0 0 1), as a new float64 4x4 array, or ``fallback`` (identity by default) when ``T`` is not a
+    finite 4x4 matrix. KISS-ICP's Sophus aborts the whole process on a rotation off by more than
+    1e-10, so every pose that came from outside (an ack, a checkpoint, an attach) or from long
+    products of our own goes through this before it is handed to an odometry."""
+    m = np.asarray(T, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        return np.eye(4) if fallback is None else np.array(fallback, np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] = -u[:, -1]
+    out = np.eye(4)
+    out[:3, :3] = u @ vt
+    out[:3, 3] = m[:3, 3]
+    return out

@@ -32,6 +32,7 @@ VERSION = 2
 READS = (1, 2)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
+RIGID_TOL = 1e-6  # a pose's rotation may be this far from orthonormal (float noise; consumers re-project)
 ORIGIN_MAX = 1e6  # metres: a q16z scan's corner (its extent is at most 65,535 steps of 1 m)
 _ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
@@ -58,8 +59,10 @@ DEFAULT_LIMITS = Limits()
 @dataclass(frozen=True)
 class ArraySpec:
     """What an array field may hold: one dtype, a shape with ``-1`` for free dimensions, whether
-    float values must be finite (``"finite"``, ``"nan-or-finite"``: all NaN means "none") and which
-    ``Limits`` cap bounds its first dimension."""
+    float values must be finite (``"finite"``, ``"nan-or-finite"``: all NaN means "none"), or
+    rigid motions (``"rigid"``, ``"nan-or-rigid"``: finite 4x4 matrices whose rotation is
+    orthonormal within ``RIGID_TOL`` and whose last row is 0 0 0 1) and which ``Limits`` cap bounds
+    its first dimension."""
 
     dtype: str
     shape: tuple[int, ...]
@@ -80,12 +83,27 @@ class ArraySpec:
             return
         # A finite sum proves every value finite (NaN and inf propagate): one reduction for the
         # common clean array
-        if np.isfinite(np.add.reduce(arr, axis=None, dtype=np.float64)):
-            return
-        if self.values == "nan-or-finite" and np.isnan(arr).all():
-            return
-        if not np.isfinite(arr).all():
-            raise WireError(f"field {name!r}: non-finite values")
+        if not np.isfinite(np.add.reduce(arr, axis=None, dtype=np.float64)):
+            if self.values.startswith("nan-or-") and np.isnan(arr).all():
+                return
+            if not np.isfinite(arr).all():
+                raise WireError(f"field {name!r}: non-finite values")
+        if self.values.endswith("rigid"):
+            off = rigid_error(arr)
+            if not off <= RIGID_TOL:
+                raise WireError(f"field {name!r}: not a rigid motion (off by {off:.3g})")
+
+
+def rigid_error(arr: np.ndarray) -> float:
+    """How far (n, 4, 4) or (4, 4) finite matrices are from rigid motions: the largest deviation
+    of R Rᵀ from the identity, of det R from 1, or of the last row from 0 0 0 1."""
+    m = np.asarray(arr, np.float64).reshape(-1, 4, 4)
+    if len(m) == 0:
+        return 0.0
+    r = m[:, :3, :3]
+    gram = np.einsum("nij,nkj->nik", r, r) - np.eye(3)
+    bottom = m[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])
+    return float(max(np.abs(gram).max(), np.abs(np.linalg.det(r) - 1).max(), np.abs(bottom).max()))
 
 
 @dataclass(frozen=True)
@@ -198,7 +216,7 @@ class ScanAck(Message):
     keypoints: int = _num(lo=0, hi=1e9)  # points KISS-ICP registered against the map
     sigma: float = _num(lo=0.0, hi=1e6, nan=True)  # KISS-ICP adaptive threshold after this scan
     detail: str = _text("")
-    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="nan-or-finite"))  # all NaN: no pose
+    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="nan-or-rigid"))  # all NaN: no pose
     # Version 2
     epoch: int = _num(0, bounds=SEQ)  # echo of Scan.epoch
     edge: str = _text("", max_len=ID_MAX)  # the answering edge
@@ -265,7 +283,7 @@ class MapReply(Message):
     scans: int = _num(lo=0, hi=SEQ_MAX)
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))
     seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
-    poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), cap="max_map_points"))
+    poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid", cap="max_map_points"))
 
 
 @dataclass(frozen=True)
@@ -304,8 +322,8 @@ class Checkpoint(Message):
     max_range: float = _num(lo=0.1, hi=10_000.0)
     min_range: float = _num(lo=0.0, hi=10_000.0)
     max_points_per_voxel: int = _num(lo=1, hi=1000)
-    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # sensor → world after that scan
-    delta: np.ndarray = _array(ArraySpec("<f8", (4, 4)))  # the last motion per scan period
+    pose: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="rigid"))  # sensor → world after that scan
+    delta: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="rigid"))  # the last motion per scan period
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))  # coarse local map, world
     final: bool = False  # the edge is draining: this is its last checkpoint, the robot must move
 
@@ -324,7 +342,7 @@ class Attach(Message):
     rate_hz: float = _num(lo=0.01, hi=1000.0)
     checkpoint: bytes = b""
     local_seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
-    local_poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), cap="max_map_points"))
+    local_poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid", cap="max_map_points"))
 
     def __post_init__(self) -> None:
         if len(self.local_seqs) != len(self.local_poses):

@@ -67,6 +67,9 @@ class PoseKeeper:
 
     # The ack callback (caller holds the lock)
     def edge_pose(self, seq: int, pose: np.ndarray) -> None:
+        """An acked scan's pose (none from an edge that does not map: all NaN, not kept)."""
+        if not np.isfinite(pose).all():
+            return
         if not self._edge_poses or seq > self._edge_poses[-1][0]:
             self._edge_poses.append((seq, np.array(pose)))
             self.pose = (self._edge_poses[-1][1], 0.0)

@@ -23,7 +23,7 @@ import numpy as np
 
 from zoffload.mapping.checkpoint import seed, take_checkpoint
 from zoffload.mapping.mapper import load_kiss_icp
-from zoffload.mapping.se3 import se3_power
+from zoffload.mapping.se3 import as_rigid, se3_power
 from zoffload.protocol import wire
 from zoffload.robot.scanlog import Histogram
 
@@ -103,8 +103,8 @@ class LocalOdometry:
             s, p = newer[-1]
             if len(newer) >= 2 and 0 < s - newer[-2][0] <= MAX_GAP:
                 prev_s, prev = newer[-2]
-                odo.last_delta = se3_power(np.linalg.inv(prev) @ p, 1.0 / (s - prev_s))
-            odo.last_pose = np.array(p, np.float64)
+                odo.last_delta = as_rigid(se3_power(np.linalg.inv(prev) @ p, 1.0 / (s - prev_s)))
+            odo.last_pose = as_rigid(p)
             last_seq = s
         with self._lock:
             self._odometry, self._last_seq, self._since_checkpoint = odo, last_seq, 0
@@ -142,10 +142,10 @@ class LocalOdometry:
         stretch = 1 < gap <= MAX_GAP
         with self._lock:
             if stretch:  # scans without a pose in between: predict the motion over all of them
-                odo.last_delta = se3_power(odo.last_delta, gap)  # type: ignore[attr-defined]
+                odo.last_delta = as_rigid(se3_power(odo.last_delta, gap))  # type: ignore[attr-defined]
             odo.register_frame(frame, np.empty(0))  # type: ignore[attr-defined]
             if stretch:
-                odo.last_delta = se3_power(odo.last_delta, 1.0 / gap)  # type: ignore[attr-defined]
+                odo.last_delta = as_rigid(se3_power(odo.last_delta, 1.0 / gap))  # type: ignore[attr-defined]
             pose = np.array(odo.last_pose, np.float64)  # type: ignore[attr-defined]
             self._last_seq = seq
             self._poses.append((seq, pose))

@@ -147,3 +147,35 @@ def test_times_survive_the_u16_coding() -> None:
     back = times_from_u16(q, span) + t.min()
     assert np.abs(back - t).max() <= span / 65535 / 2 + 1e-12
     assert times_to_u16(np.full(5, 3.0))[1] == 0.0  # no spread: no times
+
+
+def _mat(m: np.ndarray) -> dict[str, object]:
+    m = np.asarray(m, np.float64)
+    return {"nd": "<f8", "shape": list(m.shape), "data": m.tobytes()}
+
+
+@pytest.mark.parametrize("kind, field", [("ack", "pose"), ("checkpoint", "pose"), ("checkpoint", "delta")])
+def test_a_pose_that_is_not_a_rigid_motion_is_refused(kind: str, field: str) -> None:
+    """KISS-ICP's Sophus aborts the process on a rotation off by more than 1e-10 or a last row
+    other than 0 0 0 1: such a pose must not get past the codec (float noise within 1e-6 may)."""
+    for off in (np.diag([1.5, 1.0, 1.0, 1.0]), np.diag([1.0, 1.0, 1.0, 2.0]), np.diag([-1.0, 1.0, 1.0, 1.0])):
+        with pytest.raises(wire.WireError, match="not a rigid motion"):
+            wire.decode(tamper(kind, **{field: _mat(off)}))
+    bottom = np.eye(4)
+    bottom[3, 0] = 0.5
+    with pytest.raises(wire.WireError, match="not a rigid motion"):
+        wire.decode(tamper(kind, **{field: _mat(bottom)}))
+    noisy = np.eye(4)
+    noisy[0, 0] += 1e-9
+    assert getattr(wire.decode(tamper(kind, **{field: _mat(noisy)})), field)[0, 0] == noisy[0, 0]
+
+
+def test_attach_and_map_poses_are_rigid_motions_too() -> None:
+    scaled = np.tile(np.eye(4), (3, 1, 1))
+    scaled[1, :3, :3] *= 2
+    with pytest.raises(wire.WireError, match="not a rigid motion"):
+        wire.decode(tamper("attach", local_seqs={"nd": "<i8", "shape": [3], "data": np.arange(3).tobytes()},
+                           local_poses=_mat(scaled)))
+    with pytest.raises(wire.WireError, match="not a rigid motion"):
+        wire.decode(tamper("map", seqs={"nd": "<i8", "shape": [3], "data": np.arange(3).tobytes()},
+                           poses=_mat(scaled)))
