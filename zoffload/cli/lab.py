@@ -46,7 +46,8 @@ def _run_experiment(a: argparse.Namespace) -> int:
         row = run_scan_experiment(ScanExperiment(
             trace=a.trace, policy=a.policy, scans=a.scans, out=a.out, max_scans=a.max_scans,
             replay=a.replay, rate_hz=a.rate, seed=a.seed, coding=a.coding,
-            voxel_range=tuple(a.voxel_range) if a.voxel_range else None, repeat=a.repeat))
+            voxel_range=tuple(a.voxel_range) if a.voxel_range else None, repeat=a.repeat,
+            attach=a.attach))
     except TraceError as exc:
         raise ConfigError(str(exc)) from exc
     print(summary_line(row))
@@ -215,6 +216,10 @@ def add_experiment(sub: Any) -> None:
                     help="runs of the experiment, into OUT/run1 ... OUT/runN (report them with OUT/run*)")
     es.add_argument("--voxel-range", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
                     help="the scale policies' voxel range (default 0.01 0.07, a VLP-16 indoors)")
+    es.add_argument("--attach", action="store_true",
+                    help="the robot's fleet defaults: the attach protocol, local odometry while the link "
+                         "is out, its poses handed to the edge on return (default: the paper's set-up, "
+                         "every scan offered to the one edge)")
     es.add_argument("--log-level", default="WARNING")
     es.set_defaults(func=_run_experiment)
     ed = exs.add_parser("detect", help="camera frames robot/edge, the offloading thesis' Tables 6.3-6.5")

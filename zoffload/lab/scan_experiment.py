@@ -49,6 +49,10 @@ class ScanExperiment:
     coding: str = "f32"  # scan payload coding: "f32", "q16z" or "q16d"
     voxel_range: tuple[float, float] | None = None  # the policies' range (default the robot's)
     repeat: int = 1  # runs of the same experiment (run1 ... runN under ``out``)
+    # The robot's fleet defaults (attach protocol on): while the link is out it registers scans
+    # with its own light odometry and hands the poses to the edge when it attaches again. Off by
+    # default: the paper's set-up, every scan offered to the one edge.
+    attach: bool = False
 
 
 def policy_voxel(policy: str) -> float | None:
@@ -116,7 +120,8 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
                   and np.isfinite(float(r["interarrival"]))])
     produced = (balance or {}).get("produced", len(recs))
     return {
-        "policy": exp.policy if exp.coding == "f32" else f"{exp.policy}+{exp.coding}",
+        "policy": (exp.policy if exp.coding == "f32" else f"{exp.policy}+{exp.coding}")
+        + ("+attach" if exp.attach and exp.policy != "local" else ""),
         "trace": exp.trace, "scans": exp.scans,
         "S_kB": float(np.mean([float(r["bytes"]) for r in sent]) / 1e3) if sent and exp.policy != "local"
         else None,
@@ -125,6 +130,8 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
         "scans_produced": (balance or {}).get("produced", len(recs)),
         "scans_sent": len(sent) if exp.policy != "local" else len(recs),
         "scans_received": len(received) if exp.policy != "local" else len(recs),
+        # registered by the robot's own odometry while the link was out (``--attach``)
+        "scans_local": sum(1 for r in recs if r.get("status") == "local") if exp.policy != "local" else 0,
         "T_mean": float(t.mean()) if len(t) else None,
         "T_le_0.11": float((t <= 0.11).mean()) if len(t) else None,
         "map_points": map_points,
@@ -233,10 +240,10 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
         scans=exp.scans, replay=replay, max_scans=max_scans, voxel=voxel, rate_hz=rate, sim_seed=exp.seed,
         scale_policy=exp.policy if exp.policy.startswith("dqn") or exp.policy == "rate" else "fixed",
         out_dir=str(out), wait_edge=30, scan_coding=exp.coding,  # type: ignore[arg-type]
-        # The paper's set-up: one edge, every scan offered to it. With the fleet's attach protocol
-        # a silent link would send the robot to local odometry (scans not offered at all), which
-        # is another experiment (``zoffload experiment fleet``)
-        fleet=RobotFleetSettings(attach=False),
+        # The paper's set-up: one edge, every scan offered to it (a scan is dropped at the source
+        # while the edge's liveliness token is gone). With ``--attach``, the robot's defaults:
+        # while the link is out it maps with its own odometry and hands the poses over on return
+        fleet=RobotFleetSettings(attach=exp.attach),
     )
     if exp.voxel_range:
         robot.voxel_range = exp.voxel_range

@@ -22,14 +22,21 @@ from zoffload.lab.eval.ap import average_precision
 from zoffload.sources.images import coco_person_boxes
 
 
+TEXT_COLUMNS = ("side", "status", "edge")  # frames.csv columns that are words, not numbers
+
+
+def _cell(key: str, value: str | None) -> Any:
+    if value in ("", None) or key in TEXT_COLUMNS:
+        return value
+    try:
+        return float(value)
+    except ValueError:  # a column added later (as "edge" was): kept as text, not a crash
+        return value
+
+
 def load_frames(run: Path) -> list[dict[str, Any]]:
     with open(run / "frames.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    out = []
-    for r in rows:
-        out.append({k: (float(v) if v not in ("", None) and k not in ("side", "status") else v)
-                    for k, v in r.items()})
-    return out
+        return [{k: _cell(k, v) for k, v in r.items()} for r in csv.DictReader(f)]
 
 
 def load_persons(run: Path) -> dict[int, tuple[np.ndarray, np.ndarray]]:
