@@ -153,19 +153,23 @@ class FrameBook:
         return str(self.records[seq].get("edge", ""))
 
     def send_replaced(self, seq: int) -> None:
-        """A frame (or copy) still waiting for the link when a newer one took its place."""
+        """A frame (or copy) still waiting for the link when a newer one took its place. A frame
+        booked meanwhile (lost when its edge went, or overdue while the link was blocked) keeps
+        that bucket."""
         if self.copies.pop(seq, None) is not None:
             self.counters["copies_replaced"] += 1
             return
-        self.in_flight.pop(seq, None)
-        self.finish(seq, "dropped_send")
+        if self.in_flight.pop(seq, None) is not None:
+            self.finish(seq, "dropped_send")
 
     def send_failed(self, seq: int) -> None:
-        """The frame could not be encoded for the link (a copy's frame is still detected locally)."""
+        """The frame could not be encoded for the link (a copy's frame is still detected locally;
+        a frame booked meanwhile keeps its bucket)."""
         if self.copies.pop(seq, None) is not None:
             self.counters["copies_failed"] += 1
             return
-        self.failed(seq)
+        if self.in_flight.pop(seq, None) is not None:
+            self.finish(seq, "error")
 
     def waiting_to_send(self, seq: int) -> bool:
         """Whether the sender should still put this frame (or copy): not booked meanwhile."""
@@ -181,7 +185,14 @@ class FrameBook:
         self.finish(seq, "error")
 
     def finish(self, seq: int, bucket: str) -> None:
-        self.records[seq]["status"] = bucket
+        """Book the frame in its one bucket. A frame already booked stays where it is (counted as
+        ``rebooked``, logged: every path that can reach a booked frame checks first)."""
+        rec = self.records[seq]
+        if rec["status"] != "pending":
+            self.counters["rebooked"] += 1
+            log.warning("frame %d: already %s, not booked again as %s", seq, rec["status"], bucket)
+            return
+        rec["status"] = bucket
         self.counters[bucket] += 1
 
     # Results

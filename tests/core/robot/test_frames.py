@@ -242,3 +242,35 @@ def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:
     b.sent(3, 0.2, False)
     assert b.edge_result(3, "dropped", 0.21, float("nan"), float("nan"), *NONE) == "edge_dropped"
     assert s.replies[-1].status == "dropped" and math.isnan(s.replies[-1].delivery_rate)
+
+
+def test_a_frame_booked_lost_while_it_waits_for_the_link_is_not_booked_again() -> None:
+    # Seen in the held-out sweep (mmWave link, dispatch): a blockage made the edge's token go, the
+    # frame waiting in the sender's slot was booked lost with the others in flight, and when a newer
+    # frame took the slot it was booked again as dropped_send: 1251 buckets for 1250 frames.
+    b = book()
+    for seq in range(3):
+        b.decide(seq, seq, capture=0.1 * seq, now=0.1 * seq)
+        b.sent(seq, 0.1 * seq, False)
+    b.edges_changed(False, 0.25)  # every frame in flight, the one in the slot too, booked lost
+    b.send_replaced(2)  # the slot's frame replaced afterwards
+    b.send_failed(1)  # an encoding failure reported after the loss
+    bal = b.balance()
+    assert bal["edge_lost"] == 3 and bal["dropped_send"] == 0 and bal["error"] == 0
+    assert b.balanced() and b.counters["rebooked"] == 0
+    # expiry while the link was blocked: the same
+    b2 = book()
+    b2.decide(0, 0, capture=0.0, now=0.0)
+    b2.sent(0, 0.0, False)
+    assert b2.expire(1.0) == [0]
+    b2.send_replaced(0)
+    assert b2.balance()["edge_lost"] == 1 and b2.balance()["dropped_send"] == 0 and b2.balanced()
+
+
+def test_finish_never_books_a_frame_twice() -> None:
+    b = book(RobotOnly())
+    b.decide(0, 0, capture=0.0, now=0.0)
+    b.local_result(0, 0.05, service=0.05, infer_time=0.05, boxes=ONE[0], scores=ONE[1])
+    b.finish(0, "dropped_stale")  # a path that forgot to check
+    assert b.records[0]["status"] == "local_done" and b.counters["rebooked"] == 1
+    assert b.balanced() and b.summary()["other"]["rebooked"] == 1

@@ -21,7 +21,6 @@ import numpy as np
 from zoffload.lab.eval.ap import average_precision
 from zoffload.sources.images import coco_person_boxes
 
-
 TEXT_COLUMNS = ("side", "status", "edge")  # frames.csv columns that are words, not numbers
 
 
