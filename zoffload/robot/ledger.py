@@ -4,6 +4,9 @@
     published = acked + edge_dropped + edge_error + edge_refused + lost + late + in_flight
 
 ``local``: registered by the robot's own odometry instead of being sent (no edge mapped the robot).
+``lost_overtaken`` (not a bucket: a share of ``lost``): lost while a later scan sent the same way
+(edge and epoch) was answered. An edge answers a robot's scans in order, one answer each, so the
+scan or its answer was lost on the way (the transport), not with the edge.
 ``sending``: handed to the sender thread, not published yet (at most two: the one it is encoding
 and the one waiting in its slot). ``edge_refused``: the edge did not admit this robot (allowlist,
 ``max_robots``). ``lost``: no ack within the timeout. ``late``: its ack came after that (moved out
@@ -43,6 +46,7 @@ class ScanLedger:
     first_acked_at: float | None = None  # robot clock of the first scan acked "ok"
     recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
     _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
+    _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
 
     @property
     def records(self) -> dict[int, dict[str, Any]]:
@@ -119,6 +123,10 @@ class ScanLedger:
             self.interarrivals_seen += 1
         if ack.seq in self.pending:
             del self.pending[ack.seq]
+            route = (str(rec.get("edge", "")), int(rec.get("epoch") or 0))
+            newest = self._newest_answer
+            if newest is None or newest[:2] != route or ack.seq > newest[2]:
+                self._newest_answer = (*route, ack.seq)
             bucket = ACK_BUCKETS.get(ack.status, "edge_error")
             self.counters[bucket] += 1
             rec["status"] = bucket
@@ -134,6 +142,8 @@ class ScanLedger:
             return bucket
         if rec.get("status") == "lost":
             self.counters["lost"] -= 1
+            if rec.pop("overtaken", False):
+                self.counters["lost_overtaken"] -= 1
             self.counters["late"] += 1
             rec["status"] = "late"
             return "late"
@@ -152,10 +162,16 @@ class ScanLedger:
     def expire(self, now: float, timeout: float) -> int:
         """Declare lost every scan unanswered for ``timeout`` seconds; returns how many."""
         expired = [seq for seq, stamp in self.pending.items() if now - stamp > timeout]
+        newest = self._newest_answer
         for seq in expired:
             del self.pending[seq]
             self.counters["lost"] += 1
-            self.records[seq]["status"] = "lost"
+            rec = self.records[seq]
+            rec["status"] = "lost"
+            route = (str(rec.get("edge", "")), int(rec.get("epoch") or 0))
+            if newest is not None and newest[:2] == route and newest[2] > seq:
+                rec["overtaken"] = True
+                self.counters["lost_overtaken"] += 1
         return len(expired)
 
     def finish(self) -> None:

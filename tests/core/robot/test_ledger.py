@@ -103,3 +103,29 @@ def test_local_scans_are_a_terminal_bucket_and_catch_up_poses_keep_their_bucket(
     assert sorted(led.poses) == [0, 1, 3, 4, 5]
     led.counters["local"] += 1  # a scan booked twice would show
     assert not led.balanced()
+
+
+def test_a_scan_lost_while_later_ones_were_answered_is_counted_as_overtaken() -> None:
+    # The edge answers a robot's scans in order, one answer each: a scan unanswered while a later
+    # one sent the same way was answered never reached the edge (or its answer got lost)
+    led = ScanLedger()
+    for seq in range(6):
+        led.produced()
+        edge, epoch = ("e1", 1) if seq < 4 else ("e2", 2)
+        led.published(seq, send_stamp=100.0 + seq, record={"edge": edge, "epoch": epoch})
+    assert led.on_ack(ack(0, 100.0), 100.1) == "acked"
+    assert led.on_ack(ack(2, 102.0), 102.1) == "acked"  # 1 overtaken by 2 on e1
+    # 3 is e1's newest: unanswered because e1 went, not overtaken; 4 and 5 went to e2, unanswered
+    assert led.expire(now=110.0, timeout=1.0) == 4
+    assert led.counters["lost"] == 4 and led.counters["lost_overtaken"] == 1
+    # an answer after all (late): no longer lost, nor overtaken
+    assert led.on_ack(ack(1, 101.0), 110.1) == "late"
+    assert led.counters["lost"] == 3 and led.counters["lost_overtaken"] == 0
+    assert led.balanced()
+    # a later scan on e2 answered: what e2 left unanswered before it was overtaken
+    led2 = ScanLedger()
+    for seq in range(3):
+        led2.produced()
+        led2.published(seq, send_stamp=100.0 + seq, record={"edge": "e2", "epoch": 2})
+    assert led2.on_ack(ack(2, 102.0), 102.1) == "acked"
+    assert led2.expire(now=110.0, timeout=1.0) == 2 and led2.counters["lost_overtaken"] == 2
