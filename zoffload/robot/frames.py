@@ -168,8 +168,8 @@ class FrameBook:
         if self.copies.pop(seq, None) is not None:
             self.counters["copies_failed"] += 1
             return
-        if self.in_flight.pop(seq, None) is not None:
-            self.finish(seq, "error")
+        if seq in self.in_flight:
+            self.failed(seq)
 
     def waiting_to_send(self, seq: int) -> bool:
         """Whether the sender should still put this frame (or copy): not booked meanwhile."""

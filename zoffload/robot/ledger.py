@@ -123,7 +123,7 @@ class ScanLedger:
             self.interarrivals_seen += 1
         if ack.seq in self.pending:
             del self.pending[ack.seq]
-            route = (str(rec.get("edge", "")), int(rec.get("epoch") or 0))
+            route = _route(rec)
             newest = self._newest_answer
             if newest is None or newest[:2] != route or ack.seq > newest[2]:
                 self._newest_answer = (*route, ack.seq)
@@ -168,7 +168,7 @@ class ScanLedger:
             self.counters["lost"] += 1
             rec = self.records[seq]
             rec["status"] = "lost"
-            route = (str(rec.get("edge", "")), int(rec.get("epoch") or 0))
+            route = _route(rec)
             if newest is not None and newest[:2] == route and newest[2] > seq:
                 rec["overtaken"] = True
                 self.counters["lost_overtaken"] += 1
@@ -208,6 +208,11 @@ class ScanLedger:
             and b["published"] == b["acked"] + b["edge_dropped"] + b["edge_error"] + b["edge_refused"]
             + b["lost"] + b["late"] + b["in_flight"]
         )
+
+
+def _route(rec: dict[str, Any]) -> tuple[str, int]:
+    """The (edge, epoch) a scan was sent under ("", 0) without the attach protocol."""
+    return str(rec.get("edge", "")), int(rec.get("epoch") or 0)
 
 
 def _pose_known(rec: dict[str, Any]) -> None:
