@@ -15,9 +15,12 @@ divided by the edge's mapper workers.
 The robots run on the same machine as the edge and their sensors (the simulator's ray casting,
 the replay's file reads) take CPU from it: on a small machine the figure is a lower bound; run the
 robots elsewhere (or on a bigger machine than the edge's cores) for the edge's own limit.
+``--pin K`` gives the edge K cores of its own instead (CPU affinity: the last K cores, set
+before its threads start; its mapper workers default to K) and the robots the others, so the
+figure is the edge's per core, not the shared machine's.
 
 Run: python -m benchmarks.bench_capacity [--max-robots 8] [--scans 300] [--edge-workers 2]
-         [--sensors sim kitti] [--no-attach] [--out DIR]
+         [--sensors sim kitti] [--no-attach] [--pin K] [--out DIR]
 """
 
 from __future__ import annotations
@@ -51,6 +54,16 @@ def _rows(path: Path) -> list[dict[str, Any]]:
         return list(csv.DictReader(f))
 
 
+def cores(pin: int) -> tuple[set[int], set[int]]:
+    """(the edge's cores, the robots') with ``pin`` cores for the edge; both empty without."""
+    if not pin:
+        return set(), set()
+    mine = sorted(os.sched_getaffinity(0))
+    if pin >= len(mine):
+        raise SystemExit(f"--pin {pin}: this process has {len(mine)} cores, the robots need one at least")
+    return set(mine[-pin:]), set(mine[:-pin])
+
+
 def step(sensor: str, n: int, a: argparse.Namespace, out: Path) -> dict[str, Any]:
     """One edge and ``n`` robots until every robot has sent its scans; their timeliness."""
     out.mkdir(parents=True, exist_ok=True)
@@ -58,9 +71,12 @@ def step(sensor: str, n: int, a: argparse.Namespace, out: Path) -> dict[str, Any
     cpu = CpuSampler()
     edge_args = ["edge", *SESSION, "-l", ep, "--edge-id", "edge1", "--map-dir", str(out / "edge"),
                  "--fleet.no-shed", "--fleet.capacity", str(n), "--admission.max-robots", str(max(16, n))]
-    if a.edge_workers:
-        edge_args += ["--mapper.workers", str(a.edge_workers)]
+    if a.edge_workers or a.pin:
+        edge_args += ["--mapper.workers", str(a.edge_workers or a.pin)]
     edge = Spawned("edge", edge_args, out / "edge.log")
+    edge_cpus, robot_cpus = cores(a.pin)
+    if edge_cpus:
+        os.sched_setaffinity(edge.proc.pid, edge_cpus)
     cpu.add("edge", edge.proc.pid)
     robots: list[Spawned] = []
     try:
@@ -76,6 +92,8 @@ def step(sensor: str, n: int, a: argparse.Namespace, out: Path) -> dict[str, Any
                     "--voxel", str(a.sim_voxel if sensor == "sim" else a.kitti_voxel), "--wait-edge", "30",
                     "--out", str(out / f"robot{i}")] + (["--fleet.no-attach"] if a.no_attach else [])
             robots.append(Spawned(f"robot{i}", args, out / f"robot{i}.log"))
+            if robot_cpus:
+                os.sched_setaffinity(robots[-1].proc.pid, robot_cpus)
             cpu.add(f"robot{i}", robots[-1].proc.pid)
         deadline = time.monotonic() + a.scans / RATE_HZ + 120
         while any(r.proc.poll() is None for r in robots) and time.monotonic() < deadline:
@@ -127,12 +145,18 @@ def main(argv: list[str] | None = None) -> None:
                    help="scans not acked (all robots, after warm-up) a step may have and still hold "
                    "(default 0)")
     p.add_argument("--no-attach", action="store_true", help="robots without the attach protocol (legacy)")
+    p.add_argument("--pin", type=int, default=0, metavar="K",
+                   help="the edge on K cores of its own (the last K), the robots on the others (default: "
+                   "all share every core)")
     p.add_argument("--out", default=None, help="keep the runs here (default: a temporary folder)")
     a = p.parse_args(argv)
     header("edge capacity: robots at 10 Hz per edge")
-    workers = a.edge_workers or os.cpu_count() or 1
+    workers = a.edge_workers or a.pin or os.cpu_count() or 1
+    edge_cpus, robot_cpus = cores(a.pin)
     print(f"edge mapper workers: {workers}; {a.scans} scans per robot; on time = acked within "
-          f"{1e3 * a.within:.0f} ms on >= {100 * ON_TIME:.0f} % of scans")
+          f"{1e3 * a.within:.0f} ms on >= {100 * ON_TIME:.0f} % of scans; "
+          + (f"edge pinned to cores {sorted(edge_cpus)}, robots to {sorted(robot_cpus)}" if a.pin
+             else "edge and robots share every core"))
     with tempfile.TemporaryDirectory(prefix="bench-capacity-") as tmp:
         out = Path(a.out or tmp)
         result: dict[str, int] = {}
@@ -145,8 +169,9 @@ def main(argv: list[str] | None = None) -> None:
         for sensor, held in result.items():
             name = "simulator VLP-16" if sensor == "sim" else "KITTI-360 HDL-64"
             limit = " (the largest step tried: raise --max-robots)" if held == a.max_robots else ""
-            print(f"{name}: {held} robots per edge{limit}, {held / workers:.2f} per mapper worker/core "
-                  f"({workers} workers)")
+            per = (f"{held / a.pin:.2f} per edge core ({a.pin} pinned)" if a.pin
+                   else f"{held / workers:.2f} per mapper worker/core ({workers} workers)")
+            print(f"{name}: {held} robots per edge{limit}, {per}")
 
 
 if __name__ == "__main__":

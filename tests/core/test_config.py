@@ -84,8 +84,8 @@ def test_zenoh_config_error_is_clear() -> None:
 
 
 def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
-    from zoffload.edge.server import DROP_WAIT_KEY, edge_zenoh
-    from zoffload.runtime.session import zenoh_config
+    from zoffload.edge.server import edge_zenoh
+    from zoffload.runtime.session import DROP_WAIT_KEY, zenoh_config
 
     z = edge_zenoh(ZenohSettings(cfg=['mode:"peer"']))
     assert z.cfg[0] == f"{DROP_WAIT_KEY}:50000" and z.cfg[1] == 'mode:"peer"'
@@ -93,6 +93,19 @@ def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
     assert '"wait_before_drop":50000' in cc
     mine = ZenohSettings(cfg=[f"{DROP_WAIT_KEY}:0"])
     assert edge_zenoh(mine) == mine
+
+
+def test_router_waits_longer_before_dropping_unless_told_otherwise() -> None:
+    """The router forwards several robots' BLOCK_FIRST scans to one edge; with Zenoh's 1 ms it
+    dropped some under load (benchmarks/bench_fanin.py)."""
+    from zoffload.runtime.router import router_zenoh
+    from zoffload.runtime.session import DROP_WAIT_KEY, zenoh_config
+
+    z = router_zenoh(ZenohSettings(mode="router", listen=["tcp/127.0.0.1:0"]))
+    cc = zenoh_config(z).get_json("transport/link/tx/queue/congestion_control")
+    assert '"wait_before_drop":50000' in cc
+    mine = ZenohSettings(mode="router", cfg=[f"{DROP_WAIT_KEY}:2000"])
+    assert router_zenoh(mine) == mine
 
 
 ROBOT = "ZOFFLOAD_ROBOT__"

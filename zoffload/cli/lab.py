@@ -64,7 +64,7 @@ def _run_fleet(a: argparse.Namespace) -> int:
             out=a.out, robots=a.robots, edges=a.edges, events=a.events or "", traces=tuple(a.trace or ()),
             scans=a.scans, max_scans=a.max_scans, rate_hz=a.rate, repeat=a.repeat, baseline=a.baseline,
             seed=a.seed, lease_ms=a.lease_ms, routers=a.routers, edge_workers=a.edge_workers,
-            edge_flags=a.edge_flags, robot_flags=a.robot_flags))
+            edge_flags=a.edge_flags, robot_flags=a.robot_flags, edge_cpu=a.edge_cpu or ""))
     except ScenarioError as exc:
         raise ConfigError(str(exc)) from exc
     labels = {key: label for label, key, _ in ROWS}
@@ -271,6 +271,10 @@ def add_experiment(sub: Any) -> None:
                     "linked to the robots' (every robot-edge message crosses both)")
     fl.add_argument("--edge-workers", type=int, default=None,
                     help="mapper threads per edge (default: one per core)")
+    fl.add_argument("--edge-cpu", default="", metavar="[EDGE=]CORES,...",
+                    help="run edges under a CFS CPU quota (root, cgroups), as a container's cpus "
+                    "would: CORES for every edge or EDGE=CORES for one (e.g. edge1=0.5,edge2=0.9); over "
+                    "capacity on a machine the robots share")
     fl.add_argument("--edge-flags", default="",
                     help="extra flags for every edge, e.g. '--fleet.checkpoint-every 5'")
     fl.add_argument("--robot-flags", default="",

@@ -27,6 +27,7 @@ import numpy as np
 from zoffload.protocol import wire
 
 EPOCHS_KEPT = 4096  # robots whose last epoch is remembered after their session went
+LATE_MIN = 10  # scans answered in the window before their late share says anything
 
 # What ``route`` decides for a scan
 OTHER, MAP, REFUSE = "other_edge", "map", "refuse"
@@ -88,12 +89,14 @@ def _rigid(poses: np.ndarray) -> bool:
 
 class Fleet:
     def __init__(self, edge_id: str, capacity: int, require_attach: bool = False, shed: bool = True,
-                 shed_load: float = 0.9, window: float = 5.0, hold: float = 30.0, quiet: float = 1.0) -> None:
+                 shed_load: float = 0.9, window: float = 5.0, hold: float = 30.0, quiet: float = 1.0,
+                 shed_late: float = 0.05) -> None:
         self.edge_id = edge_id
         self.capacity = capacity
         self.require_attach = require_attach
         self.shed_enabled = shed
         self.shed_load = shed_load
+        self.shed_late = shed_late
         self.window = window
         self.hold = hold
         self.quiet = quiet
@@ -102,7 +105,8 @@ class Fleet:
         self.draining = False
         self.drain_started: float | None = None
         self._order = 0
-        self._samples: deque[tuple[float, float, int]] = deque()  # (now, busy seconds, overload drops)
+        # (now, busy seconds, overload drops, scans answered with a registration, of them late)
+        self._samples: deque[tuple[float, float, int, int, int]] = deque()
         self._last_shed = -float("inf")
         self._held_capacity: tuple[int, float] | None = None  # (capacity, until)
 
@@ -184,9 +188,11 @@ class Fleet:
                    for e in self.attached.values())
 
     # Shedding
-    def sample(self, now: float, busy: float, overload_drops: int) -> None:
-        """The workers' busy seconds and overload drops so far (cumulative), about once a second."""
-        self._samples.append((now, busy, overload_drops))
+    def sample(self, now: float, busy: float, overload_drops: int, timed: int = 0, late: int = 0) -> None:
+        """About once a second, cumulative: the workers' busy seconds, overload drops, scans
+        answered with a registration and how many of them later than their robot's period after
+        they arrived."""
+        self._samples.append((now, busy, overload_drops, timed, late))
         while len(self._samples) > 2 and now - self._samples[1][0] >= self.window:
             self._samples.popleft()
 
@@ -194,11 +200,29 @@ class Fleet:
         """The workers' busy share over the sampled window (0 before two samples)."""
         if len(self._samples) < 2 or workers <= 0:
             return 0.0
-        (t0, b0, _), (t1, b1, _) = self._samples[0], self._samples[-1]
+        (t0, b0, *_), (t1, b1, *_) = self._samples[0], self._samples[-1]
         return 0.0 if t1 <= t0 else max(0.0, (b1 - b0) / ((t1 - t0) * workers))
 
-    def overloaded(self) -> bool:
+    def late_share(self) -> float:
+        """The share of scans answered late over the window (0 with fewer than LATE_MIN answered)."""
+        if len(self._samples) < 2:
+            return 0.0
+        (*_, n0, l0), (*_, n1, l1) = self._samples[0], self._samples[-1]
+        return (l1 - l0) / (n1 - n0) if n1 - n0 >= LATE_MIN else 0.0
+
+    def dropping(self) -> bool:
         return len(self._samples) >= 2 and self._samples[-1][2] > self._samples[0][2]
+
+    def overloaded(self, workers: int) -> bool:
+        """Behind: more than ``shed_late`` of the scans answered late (queued into lateness, even
+        with nothing dropped yet), or overload drops while the workers are busier than ``shed_load``."""
+        late = self.late_share() > self.shed_late
+        return late or (self.dropping() and self.busy_share(workers) > self.shed_load)
+
+    def overload_reason(self) -> str:
+        late = self.late_share()
+        return (f"{100 * late:.1f} % of scans answered late" if late > self.shed_late
+                else "scans dropped" if self.dropping() else "not overloaded")
 
     def to_shed(self, now: float, workers: int, room_elsewhere: bool = True) -> str | None:
         """The robot to shed now (it is then marked shed and owed a final checkpoint), or None.
@@ -206,8 +230,7 @@ class Fleet:
         moves the overload around and sends robots to their local odometry."""
         kept = [(e.order, r) for r, e in self.attached.items() if not e.shed]
         if (not self.shed_enabled or not room_elsewhere or self.draining or len(kept) <= 1
-                or now - self._last_shed < self.window
-                or not self.overloaded() or self.busy_share(workers) <= self.shed_load):
+                or now - self._last_shed < self.window or not self.overloaded(workers)):
             return None
         robot = max(kept)[1]
         entry = self.attached[robot]

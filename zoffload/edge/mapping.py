@@ -198,6 +198,8 @@ class MappingService:
             rs = self.robots.get(robot) or self._new_robot(robot)
             interarrival = float("nan") if rs.last_arrival is None else arrival - rs.last_arrival
             rs.last_arrival = arrival
+            if interarrival > 0:
+                rs.gaps.append(interarrival)
             rs.counters["received"] += 1
             self.counters["received"] += 1
             rs.queue.append(Queued(scan, arrival, interarrival))
@@ -438,15 +440,16 @@ class MappingService:
         """The server's housekeeping (about 1 Hz): the load window, shedding, shed robots' sessions."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            self.fleet.sample(now, self._busy, self.counters["dropped"])
+            self.fleet.sample(now, self._busy, self.counters["dropped"], self.counters["timed"],
+                              self.counters["late"])
             shed = self.fleet.to_shed(now, len(self._workers), self.peers.room_elsewhere(now))
             if shed is not None:
                 self.counters["shed"] += 1
                 self._ask_final(shed)
             gone = self.fleet.shed_gone(now)
         if shed is not None:
-            log.warning("over capacity (busy %.0f %%, scans dropped): shedding robot %s",
-                        100 * self.fleet.busy_share(len(self._workers)), shed)
+            log.warning("over capacity (busy %.0f %%, %s): shedding robot %s",
+                        100 * self.fleet.busy_share(len(self._workers)), self.fleet.overload_reason(), shed)
         for robot in gone:
             self.evict(robot)
 
@@ -468,6 +471,10 @@ class MappingService:
             return
         with self._lock:
             self.counters["acks"] += 1
+            if reg is not None:  # timeliness of what the mappers answered: the shedding's lateness
+                self.counters["timed"] += 1
+                if time.monotonic() - item.arrival > rs.period():
+                    self.counters["late"] += 1
 
     # Eviction (the server's housekeeping, for robots the admission expired)
     def evict(self, robot: str) -> None:

@@ -72,6 +72,9 @@ class Continue:
     local_poses: np.ndarray
 
 
+PERIOD_SCANS = 15  # inter-arrivals the robot's scan period is the median of
+
+
 @dataclass
 class RobotSession:
     """Per-robot state on the edge: the mapper (made on the first scan), the queue, counters.
@@ -83,6 +86,7 @@ class RobotSession:
     mapper: Mapper | None = None
     queue: deque[Queued] = field(default_factory=deque)
     last_arrival: float | None = None
+    gaps: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_SCANS))  # recent inter-arrivals
     counters: Counter[str] = field(default_factory=Counter)
     scheduled: bool = False
     closed: bool = False
@@ -93,3 +97,9 @@ class RobotSession:
     since_checkpoint: int = 0
     last_stamp: float = 0.0  # capture stamp of its last registered scan
     cp_pub: zenoh.Publisher | None = None
+
+    def period(self) -> float:
+        """The robot's scan period as the edge sees it: the median of its recent inter-arrivals
+        (NaN before two scans). A scan answered later than this after it arrived is late."""
+        gaps = sorted(self.gaps)
+        return gaps[len(gaps) // 2] if gaps else float("nan")

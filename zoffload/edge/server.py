@@ -53,12 +53,10 @@ from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
 from zoffload.runtime.memory import HeapTrimmer
-from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, with_defaults
+from zoffload.runtime.session import DROP_WAIT_KEY, DROP_WAIT_US, MAX_MESSAGE_KEY, open_session, with_defaults
 
 log = logging.getLogger("zoffload.edge")
 
-DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_drop"
-DROP_WAIT_US = 50_000
 TICK = 0.1  # seconds between the main loop's looks at a drain (status goes out every status_period)
 
 
@@ -90,7 +88,8 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
     m, f = settings.mapper, settings.fleet
     admitted = admitted or admission(settings)
     fleet = Fleet(settings.edge_id, capacity=f.capacity or admitted.max_robots,
-                  require_attach=f.require_attach, shed=f.shed, shed_load=f.shed_load)
+                  require_attach=f.require_attach, shed=f.shed, shed_load=f.shed_load,
+                  shed_late=f.shed_late)
     recipe = MapperRecipe(voxel_size=m.voxel_size, min_range=m.min_range, max_range=m.max_range,
                           max_points_per_voxel=m.max_points_per_voxel, deskew=m.deskew,
                           map_resolution=m.map_resolution, map_budget=m.map_budget,

@@ -35,7 +35,15 @@ from typing import Any
 import numpy as np
 
 from zoffload.lab import fleet_report as fr
-from zoffload.lab.fleet_scenario import EdgeEvent, edge_ids, kills, parse_events, parse_traces, robot_ids
+from zoffload.lab.fleet_scenario import (
+    EdgeEvent,
+    edge_ids,
+    kills,
+    parse_edge_cpu,
+    parse_events,
+    parse_traces,
+    robot_ids,
+)
 from zoffload.lab.runner import (
     ROBOT_SNDBUF,
     Spawned,
@@ -69,6 +77,7 @@ class FleetExperiment:
     edge_workers: int | None = None
     edge_flags: str = ""  # extra flags for every edge, e.g. "--fleet.checkpoint-every 5"
     robot_flags: str = ""  # extra flags for every robot, e.g. "--fleet.no-attach"
+    edge_cpu: str = ""  # CFS quota per edge process, "CORES" or "edge1=0.5,edge2=0.9" (fleet_scenario.py)
 
 
 class CpuSampler:
@@ -131,6 +140,9 @@ class Fleet:
         self.starts: dict[str, int] = {}
         self.others: list[Spawned] = []
         self.robots: dict[str, Spawned] = {}
+        self.edge_cpu = parse_edge_cpu(exp.edge_cpu, edge_ids(exp.edges))
+        self.quotas: dict[str, str] = {}  # process name -> how its quota was applied
+        self._groups: list[Path] = []
 
     def _spawn(self, name: str, args: list[str]) -> Spawned:
         (self.out / "logs").mkdir(parents=True, exist_ok=True)
@@ -155,7 +167,19 @@ class Fleet:
         if self.exp.edge_workers:
             args += ["--mapper.workers", str(self.exp.edge_workers)]
         self.edges[edge] = self._spawn(name, args + shlex.split(self.exp.edge_flags))
+        if edge in self.edge_cpu:
+            self._limit(name, self.edges[edge], self.edge_cpu[edge])
 
+    def _limit(self, name: str, p: Spawned, cores: float) -> None:
+        """The process under a CFS quota (its threads start after this: an interpreter's start-up
+        outlasts it). Without a writable cgroup the run would measure something else: it stops."""
+        from zoffload.runtime.quota import limit_process
+
+        how, group = limit_process(p.proc.pid, cores, f"zoffload-fleet-{self.port}-{name}")
+        if group is None:
+            raise StartError(f"no CPU quota for {name}: needs root and a writable cgroup (cpu controller)")
+        self._groups.append(group)
+        self.quotas[name] = f"{cores:g} cores ({how})"
     def start_robot(self, robot: str, index: int, seed: int, trace: str | None) -> None:
         endpoint, extra = self.endpoint, []
         if trace:  # the robot's own emulated link in front of the router
@@ -195,6 +219,10 @@ class Fleet:
             codes[name] = p.stop()
         for p in reversed(self.others):  # links, then the router
             codes[p.name] = p.stop()
+        from zoffload.runtime.quota import remove_group
+
+        for group in self._groups:
+            remove_group(group)
         return codes
 
 
@@ -249,25 +277,30 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
     finally:
         codes = fleet.stop_all()
         cpu = sampler.close()
-    figures = {r: _robot_result(exp, out / "robots" / r, rate, refs) for r in robots}
+    rows = {r: _rows(out / "robots" / r) for r in robots}
+    figures = {r: _robot_result(exp, out / "robots" / r, rows[r], rate, refs) for r in robots}
+    settled = fr.settled_phase(rows, 1 / rate, wall0)
     result = {"experiment": _jsonable(exp), "seed": seed, "events": timeline, "clock_wall_start": wall0,
-              "traces": traces, "exit_codes": codes, "cpu": cpu, "robots": figures,
-              "summary": fr.run_summary(figures, cpu)}
+              "traces": traces, "edge_cpu": fleet.quotas, "exit_codes": codes, "cpu": cpu, "robots": figures,
+              "settled": settled, "summary": fr.run_summary(figures, cpu, settled)}
     (out / "results.json").write_text(json.dumps(result, indent=2, default=str))
     return result
 
 
-def _robot_result(exp: FleetExperiment, folder: Path, rate: float, refs: dict[tuple[int, ...], Any]
-                  ) -> dict[str, Any]:
+def _robot_result(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], rate: float,
+                  refs: dict[tuple[int, ...], Any]) -> dict[str, Any]:
     mp = folder / "robot_metrics.json"
     metrics = json.loads(mp.read_text()) if mp.exists() else {}
-    rows: list[dict[str, Any]] = []
-    if (folder / "robot_scans.csv").exists():
-        with open(folder / "robot_scans.csv") as f:
-            rows = list(csv.DictReader(f))
     fig = fr.robot_figures(metrics, rows, 1 / rate, _ate(exp, folder, rows, refs))
     fig["exited"] = mp.exists()
     return fig
+
+
+def _rows(folder: Path) -> list[dict[str, Any]]:
+    if not (folder / "robot_scans.csv").exists():
+        return []
+    with open(folder / "robot_scans.csv") as f:
+        return list(csv.DictReader(f))
 
 
 def _ate(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], refs: dict[tuple[int, ...], Any]
@@ -327,6 +360,7 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     """Every run (and the baseline's), then ``report.md`` and ``results.json`` under ``out``."""
     events = parse_events(exp.events, edge_ids(exp.edges))
     traces = parse_traces(exp.traces, robot_ids(exp.robots))
+    quotas = parse_edge_cpu(exp.edge_cpu, edge_ids(exp.edges))
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     refs: dict[tuple[int, ...], Any] = {}
@@ -342,7 +376,8 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
              f"{exp.repeat} run(s); events: {exp.events or 'none'}; link traces: "
              f"{', '.join(f'{r}={t}' for r, t in traces.items()) or 'none'}; "
              f"{'one router' if exp.routers == 1 else 'two routers (robots, edges)'}; "
-             f"Zenoh lease {exp.lease_ms} ms. "
+             f"Zenoh lease {exp.lease_ms} ms; edge CPU quota: "
+             f"{', '.join(f'{e}={c:g} cores' for e, c in quotas.items()) or 'none'}. "
              "Robot process CPU includes its simulated sensor; the robot's ms/scan excludes it.")
     text = fr.markdown("Fleet experiment", setup, agg, base_agg, per_robot, ratio, kills(events))
     (out / "report.md").write_text(text)

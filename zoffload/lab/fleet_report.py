@@ -63,6 +63,50 @@ def on_time_share(rows: Iterable[Mapping[str, Any]], period: float, warmup: int 
     return on_time / len(body), sum(r.get("status") != "acked" for r in body)
 
 
+SETTLE_S = 5.0  # seconds after the fleet's last move before its settled phase starts
+STARVING = 0.5  # a robot on time for less than this share of its settled phase starves
+
+
+def last_move(rows_by_robot: Mapping[str, Sequence[Mapping[str, Any]]]) -> float | None:
+    """Capture time (robot clock, wall) of the fleet's last move: the first scan any robot had
+    acked by an edge other than the one that acked its previous acked scan; None without moves."""
+    last = None
+    for rows in rows_by_robot.values():
+        prev = None
+        for r in _sorted_rows(rows):
+            if r.get("status") != "acked" or not r.get("edge"):
+                continue
+            t = _num(r.get("capture_stamp"))
+            if prev is not None and r["edge"] != prev and t is not None:
+                last = t if last is None else max(last, t)
+            prev = r["edge"]
+    return last
+
+
+def settled_phase(rows_by_robot: Mapping[str, Sequence[Mapping[str, Any]]], period: float,
+                  start: float | None, settle: float = SETTLE_S) -> dict[str, Any]:
+    """How the fleet serves its robots once nobody moves any more: from ``settle`` s after the last
+    move (or ``start``, the run's clock start, without one) to the end, each robot's on-time share
+    (produced scans acked within one period) and the edge that acked most of them. For an edge
+    over capacity: the robots it kept and those it moved, each on time or starving."""
+    moved = last_move(rows_by_robot)
+    t_from = (moved + settle) if moved is not None else start
+    robots: dict[str, dict[str, Any]] = {}
+    for robot, rows in rows_by_robot.items():
+        body = [r for r in rows if t_from is None or (_num(r.get("capture_stamp")) or 0.0) >= t_from]
+        share, _ = on_time_share(body, period)
+        edges = Counter(str(r.get("edge")) for r in body if r.get("status") == "acked" and r.get("edge"))
+        robots[robot] = {"scans": len(body), "on_time": share,
+                         "edge": edges.most_common(1)[0][0] if edges else None}
+    shares = [r["on_time"] for r in robots.values() if r["scans"]]
+    return {
+        "from_s": (t_from - start) if t_from is not None and start is not None else None,
+        "robots": robots,
+        "on_time_min": min(shares) if shares else None,
+        "starving": sum(1 for r in robots.values() if (r["on_time"] or 0.0) < STARVING),
+    }
+
+
 def _median_of(x: Any) -> float | None:
     """A number, or the median (else mean) of a ``{"median": .., "mean": ..}`` section."""
     if isinstance(x, Mapping):
@@ -122,10 +166,12 @@ def _max(xs: Iterable[float | None]) -> float | None:
     return max(vals) if vals else None
 
 
-def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mapping[str, Any]]
-                ) -> dict[str, Any]:
+def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mapping[str, Any]],
+                settled: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """One run's scalars (what is averaged over repeats); ``cpu``: process name -> its figures
-    (``cores``: mean cores over its life), names starting with edge/robot/router/link."""
+    (``cores``: mean cores over its life), names starting with edge/robot/router/link;
+    ``settled``: ``settled_phase``'s figures."""
+    settled = settled or {}
     rs = list(robots.values())
     failover = [f for r in rs for f in r.get("failover_s", [])]
     jumps = [j for r in rs for j in r.get("switch_jumps_m", [])]
@@ -154,6 +200,9 @@ def run_summary(robots: Mapping[str, Mapping[str, Any]], cpu: Mapping[str, Mappi
         "local_cpu_ms_per_scan": _mean(_num(r.get("local_cpu_ms_per_scan")) for r in rs),
         "robot_cpu_ms_per_scan": _mean(_num(r.get("cpu_ms_per_scan")) for r in rs),
         "on_time_mean": _mean(_num(r.get("on_time")) for r in rs),
+        "settled_from_s": _num(settled.get("from_s")),
+        "settled_on_time_min": _num(settled.get("on_time_min")),
+        "starving": settled.get("starving"),
         "edge_cores": cores("edge"),
         "robot_cores": cores("robot"),
         "router_cores": sum(_num(c.get("cores")) or 0.0 for n, c in cpu.items() if n.startswith("router")),
@@ -211,6 +260,9 @@ ROWS = (
     ("local odometry CPU (ms/scan)", "local_cpu_ms_per_scan", ".1f"),
     ("robot process CPU (ms/scan)", "robot_cpu_ms_per_scan", ".1f"),
     ("on time (acked ≤ 1 period)", "on_time_mean", ".3f"),
+    ("settled phase: starts (s after the start)", "settled_from_s", ".1f"),
+    ("settled phase: on time, worst robot", "settled_on_time_min", ".3f"),
+    ("settled phase: robots starving (on time < 0.5)", "starving", ".1f"),
     ("edge process CPU (cores)", "edge_cores", ".2f"), ("robot process CPU (cores)", "robot_cores", ".2f"),
     ("router CPU, all routers (cores)", "router_cores", ".2f"),
 )

@@ -8,6 +8,10 @@ Events, comma-separated, ``ACTION:EDGE@SECONDS`` (seconds after every robot is u
 
 Traces, ``TRACE`` (every robot) or ``ROBOT=TRACE`` (that robot; it wins over the former), each a
 shipped trace name or a CSV file: the robot's link to the router goes through the link emulator.
+
+Edge CPU, ``CORES`` (every edge) or ``EDGE=CORES`` (that edge; it wins), comma-separated: each
+edge process (restarts too) runs under a CFS quota of that many cores, as a container's ``cpus``
+would hold it; the way to make one edge over capacity on a machine the robots share.
 """
 
 from __future__ import annotations
@@ -90,6 +94,33 @@ def parse_traces(items: Iterable[str] | None, robots: Iterable[str]) -> dict[str
     out = dict.fromkeys(ids, every) if every else {}
     out.update(own)
     return {r: t for r, t in out.items() if t and t != "none"}
+
+
+def parse_edge_cpu(text: str | None, edges: Iterable[str]) -> dict[str, float]:
+    """Edge id -> cores, for the edges under a quota."""
+    ids = list(edges)
+    every: float | None = None
+    own: dict[str, float] = {}
+    for item in (text or "").split(","):
+        item = item.strip()
+        if not item:
+            continue
+        edge, sep, value = item.rpartition("=")
+        try:
+            cores = float(value)
+        except ValueError:
+            raise ScenarioError(f"edge CPU {item!r}: expected CORES or EDGE=CORES (e.g. edge1=0.5)") from None
+        if not 0.01 <= cores <= 1024:
+            raise ScenarioError(f"edge CPU {item!r}: cores must be between 0.01 and 1024")
+        if not sep:
+            every = cores
+        elif edge.strip() not in ids:
+            raise ScenarioError(f"edge CPU {item!r}: no edge {edge.strip()!r} in this run ({', '.join(ids)})")
+        else:
+            own[edge.strip()] = cores
+    out = dict.fromkeys(ids, every) if every is not None else {}
+    out.update(own)
+    return {e: c for e, c in out.items() if c is not None}
 
 
 def kills(events: Iterable[EdgeEvent]) -> int:

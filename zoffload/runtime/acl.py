@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from zoffload.protocol.keys import Keys, check_id
+from zoffload.runtime.session import DROP_WAIT_US
 
 _PLACEHOLDER = "zoffload-acl-any"
 
@@ -161,7 +162,9 @@ def router_config(listen: Sequence[str], ca: str, cert: str, key: str, acl: dict
         "tls": {"root_ca_certificate": ca, "listen_certificate": cert, "listen_private_key": key,
                 "connect_certificate": cert, "connect_private_key": key, "enable_mtls": True,
                 "verify_name_on_connect": True},
-        "tx": {"lease": lease_ms, "keep_alive": 4},
+        "tx": {"lease": lease_ms, "keep_alive": 4,
+               # forwarding robots' scans (BLOCK_FIRST) to one edge: see runtime/session.py DROP_WAIT_US
+               "queue": {"congestion_control": {"drop": {"wait_before_drop": DROP_WAIT_US}}}},
     }
     transport: dict[str, Any] = {"link": link}
     if users_file:

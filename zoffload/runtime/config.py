@@ -162,7 +162,13 @@ class EdgeFleetSettings(_Strict):
     )
     shed_load: float = Field(
         default=0.9, gt=0, le=1.0,
-        description="the mapper workers' busy share over the last few seconds that counts as behind",
+        description="the mapper workers' busy share over the last few seconds that, with scans dropped, "
+        "counts as behind",
+    )
+    shed_late: float = Field(
+        default=0.05, ge=0, le=1.0,
+        description="share of the scans of the last few seconds answered later than their robot's period "
+        "after they arrived that counts as behind (0.05: the robots kept stay 95 percent on time)",
     )
 
 

@@ -1,4 +1,5 @@
-"""A CPU quota for the robot process, as the offloading thesis limited its robot container.
+"""A CPU quota for the robot process, as the offloading thesis limited its robot container (and,
+in the fleet experiment, for edge processes, as a container's ``cpus`` would).
 
 With root and a cgroup-v1 ``cpu`` hierarchy (``/sys/fs/cgroup/cpu``) or cgroup v2 (``cpu.max``),
 the process moves itself into its own group with ``quota`` cores of CFS time per 100 ms period;
@@ -24,9 +25,20 @@ V2 = Path("/sys/fs/cgroup")
 
 def apply_cpu_quota(cores: float, name: str | None = None) -> str:
     """Limit this process to ``cores`` CPUs; returns "cgroup-v1", "cgroup-v2" or "threads"."""
-    name = name or f"zoffload-robot-{os.getpid()}"
+    how, group = limit_process(os.getpid(), cores, name or f"zoffload-robot-{os.getpid()}")
+    if group is not None:
+        atexit.register(_leave, group.parent, group)
+        return how
+    log.warning("no writable cgroup: limiting detector threads to %d instead of a CPU quota",
+                math.ceil(cores))
+    return "threads"
+
+
+def limit_process(pid: int, cores: float, name: str) -> tuple[str, Path | None]:
+    """Put process ``pid`` (every thread of it) in a new cgroup ``name`` with ``cores`` CPUs of CFS
+    time: ("cgroup-v1" or "cgroup-v2", the group), or ("none", None) where no cgroup is writable.
+    The caller removes the group (``remove_group``) once the process is gone."""
     quota_us = max(1000, int(cores * PERIOD_US))
-    pid = str(os.getpid())
     # v1: period and quota files; v2: one cpu.max ("quota period"). Written in this order.
     for version, root, probe, limits in (
         ("v1", V1, "cpu.cfs_quota_us",
@@ -40,15 +52,22 @@ def apply_cpu_quota(cores: float, name: str | None = None) -> str:
             group.mkdir(exist_ok=True)
             for file, value in limits.items():
                 (group / file).write_text(value)
-            (group / "cgroup.procs").write_text(pid)
-            atexit.register(_leave, root, group)
-            log.info("CPU quota %.2f cores via %s", cores, group)
-            return f"cgroup-{version}"
+            (group / "cgroup.procs").write_text(str(pid))
+            log.info("CPU quota %.2f cores for process %d via %s", cores, pid, group)
+            return f"cgroup-{version}", group
         except OSError as exc:
             log.warning("cgroup %s quota not applied (%s)", version, exc)
-    log.warning("no writable cgroup: limiting detector threads to %d instead of a CPU quota",
-                math.ceil(cores))
-    return "threads"
+    return "none", None
+
+
+def remove_group(group: Path) -> bool:
+    """Remove a group made by ``limit_process`` whose processes have exited; False if it stays."""
+    try:
+        group.rmdir()
+        return True
+    except OSError as exc:  # still a process in it (or already gone)
+        log.debug("cgroup %s not removed: %s", group, exc)
+        return not group.exists()
 
 
 def _leave(root: Path, group: Path) -> None:

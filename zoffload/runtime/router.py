@@ -2,6 +2,13 @@
 
 The docker deployment uses the official ``eclipse/zenoh`` router image; this is the same role for
 a bare-metal set-up or tests: a session in router mode that forwards between its peers/clients.
+
+It waits up to ``DROP_WAIT_US`` (50 ms, Zenoh's default is 1 ms) before it drops a message it
+cannot queue: the router forwards every robot's scans (BLOCK_FIRST) to an edge over one link, and
+with the default a busy CPU made it drop a scan that arrived while another robot's was still being
+queued (``python -m benchmarks.bench_fanin``). The price: a client whose link is full holds up what
+the router forwards from the same sender by up to that much per message (a BLOCK message, such as a
+checkpoint, already could for longer). ``--cfg`` or a config file setting the key wins.
 """
 
 from __future__ import annotations
@@ -10,13 +17,18 @@ import logging
 
 from zoffload.runtime.config import ZenohSettings
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.session import open_session
+from zoffload.runtime.session import DROP_WAIT_KEY, DROP_WAIT_US, open_session, with_defaults
 
 log = logging.getLogger("zoffload.runtime.router")
 
 
+def router_zenoh(z: ZenohSettings) -> ZenohSettings:
+    """The router's session settings: ``z`` with the longer wait before a drop."""
+    return with_defaults(z, {DROP_WAIT_KEY: str(DROP_WAIT_US)})
+
+
 def run(z: ZenohSettings, stop: StopSignal) -> None:
-    session = open_session(z)
+    session = open_session(router_zenoh(z))
     log.info("router up, listening on %s", z.listen or "the default endpoint")
     try:
         stop.wait()

@@ -144,6 +144,14 @@ def undeclare(*entities: Any) -> None:
 
 
 MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
+DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_drop"
+DROP_WAIT_US = 50_000
+"""How long a node's transport waits before it drops a message it cannot queue, in microseconds
+(Zenoh's default: 1 ms). It also bounds the wait of a BLOCK_FIRST message (a scan) for its link's
+block-first slot, which the previous one holds until a spawned task has queued it. On a busy CPU
+that task can take longer than 1 ms to run: a router forwarding two robots' scans to one edge then
+dropped the second scan, unseen by either side (``python -m benchmarks.bench_fanin``). The edge and
+the router wait up to 50 ms (two camera frames) instead."""
 
 
 def with_defaults(z: ZenohSettings, defaults: dict[str, str]) -> ZenohSettings:

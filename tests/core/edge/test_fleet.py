@@ -107,6 +107,30 @@ def test_shedding_takes_the_newest_robot_when_busy_and_dropping() -> None:
 
 
 
+def test_shedding_when_scans_are_answered_late_with_nothing_dropped() -> None:
+    """Queued into lateness: each robot's queue holds its scans long enough to answer every one, so
+    nothing is dropped, but more than 5 % are answered after their robot's period: shed, whatever
+    the workers' busy share (a CPU quota throttles them while they look idle)."""
+    g = fleet(capacity=3)
+    for i, r in enumerate(["r1", "r2", "r3"]):
+        g.attach(r, 1, float(i))
+    for i in range(6):  # 20 scans answered a second, 1 late: 5 %, not more
+        g.sample(float(i), 0.5 * i, 0, 20 * i, i)
+    assert abs(g.late_share() - 0.05) < 1e-9 and g.to_shed(5.0, workers=2) is None
+    for i in range(6):  # 3 of 20 late, half idle, nothing dropped
+        g.sample(100.0 + i, 0.5 * i, 0, 20 * i, 3 * i)
+    assert abs(g.late_share() - 0.15) < 1e-9 and g.busy_share(2) < 0.9
+    assert g.to_shed(105.0, workers=2) == "r3"
+    assert "late" in g.overload_reason()
+    # Too few scans in the window to say: no shedding on a handful
+    k = fleet(capacity=3)
+    k.attach("r1", 1, 0.0)
+    k.attach("r2", 1, 0.0)
+    for i in range(6):
+        k.sample(float(i), 0.0, 0, i, i)
+    assert k.late_share() == 0.0 and k.to_shed(5.0, workers=2) is None
+
+
 def test_no_shedding_into_a_full_fleet() -> None:
     """Busy and dropping, but no other edge has room: the robots stay (shedding would only bounce
     them between full edges and into their local odometry)."""

@@ -208,9 +208,12 @@ class SlowRecipe:
         return SlowMapper()
 
 
-def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int) -> None:
+@pytest.mark.parametrize("queue", [1, 100], ids=["dropping", "late-not-dropping"])
+def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -> None:
+    """One worker at 50 ms a scan, two robots at 20 Hz. A queue of 1 drops scans; a queue of 100
+    drops none in the test's time but answers them later and later: both are behind."""
     fleet = Fleet("e1", capacity=4, window=1.0)
-    service = MappingService(KEYS, SlowRecipe(), edge_id="e1", workers=1, queue=1, fleet=fleet)
+    service = MappingService(KEYS, SlowRecipe(), edge_id="e1", workers=1, queue=queue, fleet=fleet)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
         acks = {r: Inbox(s, KEYS.scan_ack(r), wire.ScanAck) for r in ("r1", "r2")}
@@ -238,6 +241,11 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int) -> None:
                 return service.status().get("shed", 0) == 1
 
             wait_for(shed, 10, "a robot shed")
+            status = service.status()
+            if queue > 1:  # shed for lateness alone
+                assert status.get("dropped", 0) == 0 and status["late"] > 0.5 * status["timed"]
+            else:
+                assert status["dropped"] > 0
             wait_for(lambda: any(a.detail == "shed: over capacity" for a in acks["r2"].items), 5,
                      "r2 refused")
         finally:

@@ -6,7 +6,14 @@ from __future__ import annotations
 import pytest
 
 from zoffload.lab import fleet_report as fr
-from zoffload.lab.fleet_scenario import EdgeEvent, ScenarioError, kills, parse_events, parse_traces
+from zoffload.lab.fleet_scenario import (
+    EdgeEvent,
+    ScenarioError,
+    kills,
+    parse_edge_cpu,
+    parse_events,
+    parse_traces,
+)
 
 EDGES = ["edge1", "edge2"]
 ROBOTS = ["robot1", "robot2", "robot3"]
@@ -51,6 +58,42 @@ def test_traces_for_every_robot_and_per_robot() -> None:
         parse_traces(["robot9=capped"], ROBOTS)
     with pytest.raises(ScenarioError, match="name a trace"):
         parse_traces(["robot1="], ROBOTS)
+
+
+def test_edge_cpu_for_every_edge_and_per_edge() -> None:
+    edges = ["edge1", "edge2"]
+    assert parse_edge_cpu("", edges) == {}
+    assert parse_edge_cpu("0.5", edges) == {"edge1": 0.5, "edge2": 0.5}
+    assert parse_edge_cpu("edge2=1.5, 0.5", edges) == {"edge1": 0.5, "edge2": 1.5}
+    assert parse_edge_cpu("edge1=0.4", edges) == {"edge1": 0.4}
+    for bad, message in (("edge3=1", "no edge 'edge3'"), ("edge1=lots", "CORES or EDGE=CORES"),
+                         ("0", "between 0.01")):
+        with pytest.raises(ScenarioError, match=message):
+            parse_edge_cpu(bad, edges)
+
+
+def test_settled_phase_starts_after_the_last_move() -> None:
+    """robot2 moves from edge1 to edge2 at its 10th scan (t = 101.0): the settled phase starts 5 s
+    later; robot1 stays on edge1 and is late for half of it, robot2 on time on edge2."""
+    r1 = _rows("a" * 100)
+    for r in r1[80:]:
+        r["rtt"] = "0.3" if int(r["seq"]) % 2 else "0.05"
+    r2 = _rows("a" * 100)
+    for r in r2[10:]:
+        r["edge"] = "edge2"
+    assert fr.last_move({"robot1": r1, "robot2": r2}) == pytest.approx(101.0)
+    s = fr.settled_phase({"robot1": r1, "robot2": r2}, 0.1, start=100.0)
+    assert s["from_s"] == pytest.approx(6.0)
+    assert s["robots"]["robot2"] == {"scans": 40, "on_time": 1.0, "edge": "edge2"}
+    assert s["robots"]["robot1"]["edge"] == "edge1"
+    assert s["robots"]["robot1"]["on_time"] == pytest.approx(0.5 + 0.5 * 20 / 40)
+    assert s["on_time_min"] == pytest.approx(0.75) and s["starving"] == 0
+    r1[95]["rtt"] = "0.3"
+    for r in r1[60:]:
+        r["status"] = "lost"
+    assert fr.settled_phase({"robot1": r1, "robot2": r2}, 0.1, start=100.0)["starving"] == 1
+    # nobody moved: from the start
+    assert fr.settled_phase({"robot1": _rows("aaaa")}, 0.1, start=100.0)["from_s"] == 0.0
 
 
 def _rows(statuses: str, period: float = 0.1) -> list[dict[str, object]]:

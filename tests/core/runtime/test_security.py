@@ -8,6 +8,7 @@ import stat
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.acl import access_control, router_config
@@ -82,6 +83,9 @@ def test_router_config_speaks_tls_only() -> None:
     assert conf["transport"]["link"]["tls"]["enable_mtls"] is True
     assert conf["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/c/users.txt"
     assert conf["scouting"]["multicast"]["enabled"] is False
+    # forwarding several robots' BLOCK_FIRST scans to one edge without drops (bench_fanin)
+    cc = zenoh.Config.from_json5(json.dumps(conf)).get_json("transport/link/tx/queue/congestion_control")
+    assert '"wait_before_drop":50000' in cc
 
 
 def test_certificates_chain_to_the_ca_with_the_identity_as_common_name(tmp_path: Path) -> None:
