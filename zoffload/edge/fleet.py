@@ -249,7 +249,7 @@ class Fleet:
 
     def status(self, now: float) -> dict[str, float]:
         return {"capacity": float(self.effective_capacity(now)), "draining": float(self.draining),
-                "attached": float(len(self.attached))}
+                "attached": float(len(self.attached)), "late_share": self.late_share()}
 
 
 PEER_FRESH = 3.0  # seconds: an edge's status older than this says nothing about its room
@@ -257,24 +257,27 @@ MAX_PEERS = 256
 
 
 class Peers:
-    """The other edges' room, from their 1 Hz status (capacity, robots, draining)."""
+    """The other edges' room, from their 1 Hz status (capacity, robots, draining, late share). An
+    edge that is itself behind (more than ``late_limit`` of its scans answered late) has no room,
+    whatever its count says: shedding to it would only move the overload and bounce robots back."""
 
-    def __init__(self, edge_id: str) -> None:
+    def __init__(self, edge_id: str, late_limit: float = 0.05) -> None:
         self.edge_id = edge_id
-        # edge -> capacity, robots, draining, when heard
+        self.late_limit = late_limit
+        # edge -> capacity, robots, draining or behind, when heard
         self.seen: dict[str, tuple[float, float, bool, float]] = {}
 
     def update(self, edge: str, values: dict[str, float], now: float) -> None:
         if edge == self.edge_id or (edge not in self.seen and len(self.seen) >= MAX_PEERS):
             return
-        self.seen[edge] = (values.get("capacity", 0.0), values.get("robots", 0.0),
-                           values.get("draining", 0.0) > 0, now)
+        busy = values.get("draining", 0.0) > 0 or values.get("late_share", 0.0) > self.late_limit
+        self.seen[edge] = (values.get("capacity", 0.0), values.get("robots", 0.0), busy, now)
 
     def room_elsewhere(self, now: float) -> bool:
-        for edge, (capacity, robots, draining, when) in list(self.seen.items()):
+        for edge, (capacity, robots, busy, when) in list(self.seen.items()):
             if now - when > PEER_FRESH:
                 del self.seen[edge]
-            elif not draining and capacity - robots >= 1:
+            elif not busy and capacity - robots >= 1:
                 return True
         return False
 

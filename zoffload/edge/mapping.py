@@ -100,7 +100,7 @@ class MappingService:
         self._sub: zenoh.Subscriber[None] | None = None
         self._map_q: zenoh.Queryable[None] | None = None
         self._attach_q: zenoh.Queryable[None] | None = None
-        self.peers = Peers(edge_id)
+        self.peers = Peers(edge_id, self.fleet.shed_late)
         self._peers_sub: zenoh.Subscriber[None] | None = None
 
     def start(self, session: zenoh.Session) -> None:
