@@ -56,6 +56,8 @@ def _rows(path: Path) -> list[dict[str, Any]]:
 
 def cores(pin: int) -> tuple[set[int], set[int]]:
     """(the edge's cores, the robots') with ``pin`` cores for the edge; both empty without."""
+    if pin < 0:
+        raise SystemExit(f"--pin {pin}: a number of cores, 0 or more")
     if not pin:
         return set(), set()
     mine = sorted(os.sched_getaffinity(0))

@@ -256,6 +256,11 @@ PEER_FRESH = 3.0  # seconds: an edge's status older than this says nothing about
 MAX_PEERS = 256
 
 
+def behind(late_share: float, limit: float = 0.05) -> bool:
+    """Whether an edge's announced late share says it is behind (not a number: assume it is)."""
+    return not late_share <= limit
+
+
 class Peers:
     """The other edges' room, from their 1 Hz status (capacity, robots, draining, late share). An
     edge that is itself behind (more than ``late_limit`` of its scans answered late) has no room,
@@ -270,7 +275,7 @@ class Peers:
     def update(self, edge: str, values: dict[str, float], now: float) -> None:
         if edge == self.edge_id or (edge not in self.seen and len(self.seen) >= MAX_PEERS):
             return
-        busy = values.get("draining", 0.0) > 0 or values.get("late_share", 0.0) > self.late_limit
+        busy = values.get("draining", 0.0) > 0 or behind(values.get("late_share", 0.0), self.late_limit)
         self.seen[edge] = (values.get("capacity", 0.0), values.get("robots", 0.0), busy, now)
 
     def room_elsewhere(self, now: float) -> bool:

@@ -177,9 +177,11 @@ class Fleet:
 
         how, group = limit_process(p.proc.pid, cores, f"zoffload-fleet-{self.port}-{name}")
         if group is None:
-            raise StartError(f"no CPU quota for {name}: needs root and a writable cgroup (cpu controller)")
+            raise StartError(f"no CPU quota for {name}: needs root and a writable cgroup with the cpu "
+                             "controller (or the process had already exited; see the log)")
         self._groups.append(group)
         self.quotas[name] = f"{cores:g} cores ({how})"
+
     def start_robot(self, robot: str, index: int, seed: int, trace: str | None) -> None:
         endpoint, extra = self.endpoint, []
         if trace:  # the robot's own emulated link in front of the router
@@ -214,15 +216,18 @@ class Fleet:
             self.start_edge(event.edge)
 
     def stop_all(self) -> dict[str, int]:
-        codes = {}
-        for name, p in [*self.robots.items(), *self.edges.items()]:
-            codes[name] = p.stop()
-        for p in reversed(self.others):  # links, then the router
-            codes[p.name] = p.stop()
         from zoffload.runtime.quota import remove_group
 
-        for group in self._groups:
-            remove_group(group)
+        codes = {}
+        try:
+            for name, p in [*self.robots.items(), *self.edges.items()]:
+                codes[name] = p.stop()
+            for p in reversed(self.others):  # links, then the router
+                codes[p.name] = p.stop()
+        finally:
+            for group in self._groups:
+                if not remove_group(group):
+                    print(f"cgroup {group} not removed (a process still in it?)", flush=True)
         return codes
 
 

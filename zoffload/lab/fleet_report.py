@@ -98,12 +98,12 @@ def settled_phase(rows_by_robot: Mapping[str, Sequence[Mapping[str, Any]]], peri
         edges = Counter(str(r.get("edge")) for r in body if r.get("status") == "acked" and r.get("edge"))
         robots[robot] = {"scans": len(body), "on_time": share,
                          "edge": edges.most_common(1)[0][0] if edges else None}
-    shares = [r["on_time"] for r in robots.values() if r["scans"]]
-    return {
+    shares = [r["on_time"] for r in robots.values() if r["scans"] and r["on_time"] is not None]
+    return {  # an empty settled phase (a move in the run's last seconds) says nothing: None
         "from_s": (t_from - start) if t_from is not None and start is not None else None,
         "robots": robots,
         "on_time_min": min(shares) if shares else None,
-        "starving": sum(1 for r in robots.values() if (r["on_time"] or 0.0) < STARVING),
+        "starving": sum(1 for s in shares if s < STARVING) if shares else None,
     }
 
 

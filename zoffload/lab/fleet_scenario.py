@@ -112,6 +112,8 @@ def parse_edge_cpu(text: str | None, edges: Iterable[str]) -> dict[str, float]:
             raise ScenarioError(f"edge CPU {item!r}: expected CORES or EDGE=CORES (e.g. edge1=0.5)") from None
         if not 0.01 <= cores <= 1024:
             raise ScenarioError(f"edge CPU {item!r}: cores must be between 0.01 and 1024")
+        if (edge.strip() if sep else "") in own or (not sep and every is not None):
+            raise ScenarioError(f"edge CPU {item!r}: given twice")
         if not sep:
             every = cores
         elif edge.strip() not in ids:

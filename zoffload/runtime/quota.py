@@ -56,7 +56,8 @@ def limit_process(pid: int, cores: float, name: str) -> tuple[str, Path | None]:
             log.info("CPU quota %.2f cores for process %d via %s", cores, pid, group)
             return f"cgroup-{version}", group
         except OSError as exc:
-            log.warning("cgroup %s quota not applied (%s)", version, exc)
+            log.warning("cgroup %s quota for process %d not applied (%s)", version, pid, exc)
+            remove_group(group)  # made here, left empty
     return "none", None
 
 

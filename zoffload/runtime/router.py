@@ -8,7 +8,8 @@ cannot queue: the router forwards every robot's scans (BLOCK_FIRST) to an edge o
 with the default a busy CPU made it drop a scan that arrived while another robot's was still being
 queued (``python -m benchmarks.bench_fanin``). The price: a client whose link is full holds up what
 the router forwards from the same sender by up to that much per message (a BLOCK message, such as a
-checkpoint, already could for longer). ``--cfg`` or a config file setting the key wins.
+checkpoint, already could for longer). ``--cfg`` setting the key wins; with a config file the
+file is taken as it is (``zoffload certs`` writes the key into the router's).
 """
 
 from __future__ import annotations

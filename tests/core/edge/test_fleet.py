@@ -144,6 +144,7 @@ def test_no_shedding_into_a_full_fleet() -> None:
     peers.update("e2", {"capacity": 2, "robots": 2}, now)  # full
     peers.update("e3", {"capacity": 4, "robots": 1, "draining": 1}, now)  # leaving
     peers.update("e5", {"capacity": 4, "robots": 1, "late_share": 0.2}, now)  # room by count, behind
+    peers.update("e6", {"capacity": 4, "robots": 1, "late_share": float("nan")}, now)  # unreadable: behind
     assert not peers.room_elsewhere(now)
     assert g.to_shed(now, 2, peers.room_elsewhere(now)) is None
     peers.update("e4", {"capacity": 4, "robots": 1}, now)

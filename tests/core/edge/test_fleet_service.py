@@ -212,7 +212,8 @@ class SlowRecipe:
 def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -> None:
     """One worker at 50 ms a scan, two robots at 20 Hz. A queue of 1 drops scans; a queue of 100
     drops none in the test's time but answers them later and later: both are behind."""
-    fleet = Fleet("e1", capacity=4, window=1.0)
+    # dropping: lateness alone may not shed (shed_late 1), so the drop rule is what acts
+    fleet = Fleet("e1", capacity=4, window=1.0, shed_late=1.0 if queue == 1 else 0.05)
     service = MappingService(KEYS, SlowRecipe(), edge_id="e1", workers=1, queue=queue, fleet=fleet)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))

@@ -67,7 +67,7 @@ def test_edge_cpu_for_every_edge_and_per_edge() -> None:
     assert parse_edge_cpu("edge2=1.5, 0.5", edges) == {"edge1": 0.5, "edge2": 1.5}
     assert parse_edge_cpu("edge1=0.4", edges) == {"edge1": 0.4}
     for bad, message in (("edge3=1", "no edge 'edge3'"), ("edge1=lots", "CORES or EDGE=CORES"),
-                         ("0", "between 0.01")):
+                         ("0", "between 0.01"), ("edge1=1,edge1=2", "given twice"), ("1,2", "given twice")):
         with pytest.raises(ScenarioError, match=message):
             parse_edge_cpu(bad, edges)
 
@@ -92,6 +92,12 @@ def test_settled_phase_starts_after_the_last_move() -> None:
     for r in r1[60:]:
         r["status"] = "lost"
     assert fr.settled_phase({"robot1": r1, "robot2": r2}, 0.1, start=100.0)["starving"] == 1
+    # a move in the run's last seconds: an empty settled phase says nothing, nobody starves
+    r3 = _rows("a" * 100)
+    for r in r3[98:]:
+        r["edge"] = "edge2"
+    empty = fr.settled_phase({"robot3": r3}, 0.1, start=100.0)
+    assert empty["on_time_min"] is None and empty["starving"] is None
     # nobody moved: from the start
     assert fr.settled_phase({"robot1": _rows("aaaa")}, 0.1, start=100.0)["from_s"] == 0.0
 
