@@ -7,9 +7,6 @@ Ranking: weighted rendezvous hashing. Each (robot, edge) pair draws a stable num
 from a hash; the edge's score is ``w / -ln(u)`` with ``w`` its free capacity. Without load every
 robot prefers a different, stable edge (robots spread evenly and never move when an unrelated
 edge comes or goes); an edge with more room wins more robots, a full edge none.
-An edge that says it is behind (more than 5 % of its scans answered late) ranks after every edge
-that is not, so a robot shed for lateness does not land on another late edge while one keeps up;
-it stays a candidate when no other is.
 
 Assignment is sticky: the robot stays with its edge while that edge lives and does not drain or
 refuse it, whatever the ranking says later. Every attach takes a new, larger epoch; answers
@@ -23,7 +20,6 @@ import math
 from dataclasses import dataclass, field
 
 UNASSIGNED, ATTACHING, ATTACHED = "unassigned", "attaching", "attached"
-BEHIND_LATE_SHARE = 0.05  # an edge whose status says more of its scans were answered late is behind
 
 
 @dataclass
@@ -32,7 +28,6 @@ class EdgeInfo:
     capacity: int = 0  # robots it maps at most; 0 = not said yet
     robots: int = 0  # robots it maps now
     draining: bool = False  # leaving: takes no new robot
-    behind: bool = False  # answering late (its status' late_share): asked only after every other
     refused_until: float = -math.inf  # it refused us: not asked again before this time
 
     @property
@@ -56,8 +51,8 @@ def rank(robot: str, edges: list[EdgeInfo], now: float) -> list[str]:
     for e in edges:
         if e.free <= 0 or now < e.refused_until:
             continue
-        scored.append((not e.behind, e.free / -math.log(pair_uniform(robot, e.edge)), e.edge))
-    return [edge for *_, edge in sorted(scored, reverse=True)]
+        scored.append((e.free / -math.log(pair_uniform(robot, e.edge)), e.edge))
+    return [edge for _, edge in sorted(scored, reverse=True)]
 
 
 @dataclass
@@ -85,15 +80,14 @@ class Assignment:
             return True
         return False
 
-    def edge_status(self, edge: str, capacity: float, robots: float, draining: bool,
-                    behind: bool = False) -> bool:
+    def edge_status(self, edge: str, capacity: float, robots: float, draining: bool) -> bool:
         """An edge's load; True when our edge (attached or being asked) is draining. An edge being
         asked is left at once; an attached one is kept until its final checkpoint moves the robot
         (``FleetState`` times that wait)."""
         info = self.edges.get(edge)
         if info is None:
             return False  # status of an edge whose token we do not hold: not live
-        info.capacity, info.robots, info.draining, info.behind = int(capacity), int(robots), draining, behind
+        info.capacity, info.robots, info.draining = int(capacity), int(robots), draining
         if draining and edge == self.edge:
             if self.state != ATTACHED:
                 self._drop()

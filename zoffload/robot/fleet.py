@@ -34,7 +34,7 @@ import zenoh
 
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.robot.assign import ATTACHED, BEHIND_LATE_SHARE, UNASSIGNED, Assignment
+from zoffload.robot.assign import ATTACHED, UNASSIGNED, Assignment
 from zoffload.robot.odometry import Snapshot
 from zoffload.robot.presence import EdgePresence
 from zoffload.runtime.drops import Drops
@@ -102,8 +102,7 @@ class FleetState:
             a = self.assignment
             was = a.state == ATTACHED
             if not a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
-                                 values.get("draining", 0.0) > 0.5,
-                                 not values.get("late_share", 0.0) <= BEHIND_LATE_SHARE):
+                                 values.get("draining", 0.0) > 0.5):
                 return False
             if a.state == ATTACHED:  # our edge drains: wait for its final checkpoint
                 if self._drain_seen is None:

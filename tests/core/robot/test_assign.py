@@ -28,21 +28,6 @@ def test_free_capacity_weighs_and_full_or_draining_edges_take_no_one() -> None:
     assert rank("r1", [refused], 5.0) == [] and rank("r1", [refused], 11.0) == ["x"]
 
 
-def test_a_behind_edge_ranks_after_every_edge_keeping_up_but_stays_a_candidate() -> None:
-    """An edge answering late (its status' late_share) takes a robot only when no other can: a
-    robot shed for lateness does not land on another late edge."""
-    late = EdgeInfo("late", capacity=10, robots=0, behind=True)
-    ok = EdgeInfo("ok", capacity=10, robots=9)  # almost full, but keeping up
-    assert all(rank(f"r{i}", [late, ok], 0.0) == ["ok", "late"] for i in range(100))
-    assert rank("r1", [late], 0.0) == ["late"]
-    a = Assignment("r1")
-    a.edge_present("e1")
-    a.edge_status("e1", 4, 1, False, behind=True)
-    assert a.edges["e1"].behind
-    a.edge_status("e1", 4, 1, False)
-    assert not a.edges["e1"].behind
-
-
 def test_attach_failover_epochs_and_stale_answers() -> None:
     a = Assignment("r1")
     for e in ("e1", "e2"):
