@@ -26,7 +26,6 @@ Run: python -m benchmarks.bench_capacity [--max-robots 8] [--scans 300] [--edge-
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import statistics
@@ -40,18 +39,12 @@ from zoffload.lab.fleet_experiment import SESSION, CpuSampler
 from zoffload.lab.fleet_report import on_time_share
 from zoffload.lab.runner import Spawned, connect_when_listening, loopback_zenoh, wait_token
 from zoffload.protocol.keys import Keys
+from zoffload.robot.scanlog import read_scan_rows
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint
 
 RATE_HZ = 10.0
 ON_TIME = 0.95
 KEYS = Keys()
-
-
-def _rows(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    with open(path) as f:
-        return list(csv.DictReader(f))
 
 
 def cores(pin: int) -> tuple[set[int], set[int]]:
@@ -107,7 +100,8 @@ def step(sensor: str, n: int, a: argparse.Namespace, out: Path) -> dict[str, Any
         figures = cpu.close()
     shares, not_acked = [], 0
     for i in range(1, n + 1):
-        share, missing = on_time_share(_rows(out / f"robot{i}" / "robot_scans.csv"), a.within, a.warmup)
+        rows = read_scan_rows(out / f"robot{i}" / "robot_scans.csv")
+        share, missing = on_time_share(rows, a.within, a.warmup)
         shares.append(share if share is not None else 0.0)
         not_acked += missing
     return {"sensor": sensor, "robots": n, "on_time_min": min(shares),

@@ -35,6 +35,7 @@ from collections import defaultdict
 import zenoh
 
 from benchmarks.common import header
+from zoffload.lab.runner import loopback_zenoh
 from zoffload.runtime.config import ZenohSettings
 from zoffload.runtime.session import (
     DROP_WAIT_KEY,
@@ -50,8 +51,7 @@ KEY = "bench/fanin/{}/scan"
 
 
 def client(endpoint: str, cfg: tuple[str, ...] = ()) -> ZenohSettings:
-    return ZenohSettings(mode="client", connect=[endpoint], multicast_scouting=False, shared_memory=False,
-                         cfg=list(cfg))
+    return loopback_zenoh(mode="client", connect=[endpoint], cfg=list(cfg))
 
 
 def robot(endpoint: str, name: str, start: float, n: int, rate: float, size: int) -> None:

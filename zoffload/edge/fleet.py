@@ -216,12 +216,12 @@ class Fleet:
     def overloaded(self, workers: int) -> bool:
         """Behind: more than ``shed_late`` of the scans answered late (queued into lateness, even
         with nothing dropped yet), or overload drops while the workers are busier than ``shed_load``."""
-        late = self.late_share() > self.shed_late
+        late = behind(self.late_share(), self.shed_late)
         return late or (self.dropping() and self.busy_share(workers) > self.shed_load)
 
     def overload_reason(self) -> str:
         late = self.late_share()
-        return (f"{100 * late:.1f} % of scans answered late" if late > self.shed_late
+        return (f"{100 * late:.1f} % of scans answered late" if behind(late, self.shed_late)
                 else "scans dropped" if self.dropping() else "not overloaded")
 
     def to_shed(self, now: float, workers: int, room_elsewhere: bool = True) -> str | None:

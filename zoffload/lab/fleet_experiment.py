@@ -21,7 +21,6 @@ sd over repeats and the ATE ratio scripted / baseline.
 
 from __future__ import annotations
 
-import csv
 import json
 import shlex
 import signal
@@ -53,6 +52,7 @@ from zoffload.lab.runner import (
     wait_token,
 )
 from zoffload.protocol.keys import Keys
+from zoffload.robot.scanlog import read_scan_rows
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint
 
 SESSION = ["--no-multicast-scouting", "--no-shm"]
@@ -129,7 +129,8 @@ class CpuSampler:
 class Fleet:
     """The processes of one run and the edge events applied to them."""
 
-    def __init__(self, exp: FleetExperiment, out: Path, sampler: CpuSampler) -> None:
+    def __init__(self, exp: FleetExperiment, out: Path, sampler: CpuSampler,
+                 edge_cpu: dict[str, float]) -> None:
         self.exp, self.out, self.cpu = exp, out, sampler
         self.port = free_tcp_port()
         self.endpoint = loopback_endpoint(self.port)
@@ -140,7 +141,7 @@ class Fleet:
         self.starts: dict[str, int] = {}
         self.others: list[Spawned] = []
         self.robots: dict[str, Spawned] = {}
-        self.edge_cpu = parse_edge_cpu(exp.edge_cpu, edge_ids(exp.edges))
+        self.edge_cpu = edge_cpu  # edge id -> cores of its CFS quota (fleet_scenario.parse_edge_cpu)
         self.quotas: dict[str, str] = {}  # process name -> how its quota was applied
         self._groups: list[Path] = []
 
@@ -231,14 +232,14 @@ class Fleet:
         return codes
 
 
-def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: dict[str, str], seed: int,
-              refs: dict[tuple[int, ...], Any]) -> dict[str, Any]:
+def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: dict[str, str],
+              quotas: dict[str, float], seed: int, refs: dict[tuple[int, ...], Any]) -> dict[str, Any]:
     from zoffload.lab.runner import loopback_zenoh
 
     out.mkdir(parents=True, exist_ok=True)
     robots, edges = robot_ids(exp.robots), edge_ids(exp.edges)
     sampler = CpuSampler()
-    fleet = Fleet(exp, out, sampler)
+    fleet = Fleet(exp, out, sampler, quotas)
     timeline: list[dict[str, Any]] = []
     rate = exp.rate_hz or 10.0
     limit = exp.max_scans / rate + 90
@@ -282,7 +283,7 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
     finally:
         codes = fleet.stop_all()
         cpu = sampler.close()
-    rows = {r: _rows(out / "robots" / r) for r in robots}
+    rows = {r: read_scan_rows(out / "robots" / r / "robot_scans.csv") for r in robots}
     figures = {r: _robot_result(exp, out / "robots" / r, rows[r], rate, refs) for r in robots}
     settled = fr.settled_phase(rows, 1 / rate, wall0)
     result = {"experiment": _jsonable(exp), "seed": seed, "events": timeline, "clock_wall_start": wall0,
@@ -299,13 +300,6 @@ def _robot_result(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]]
     fig = fr.robot_figures(metrics, rows, 1 / rate, _ate(exp, folder, rows, refs))
     fig["exited"] = mp.exists()
     return fig
-
-
-def _rows(folder: Path) -> list[dict[str, Any]]:
-    if not (folder / "robot_scans.csv").exists():
-        return []
-    with open(folder / "robot_scans.csv") as f:
-        return list(csv.DictReader(f))
 
 
 def _ate(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], refs: dict[tuple[int, ...], Any]
@@ -347,7 +341,7 @@ def _jsonable(exp: FleetExperiment) -> dict[str, Any]:
 
 
 def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces: dict[str, str],
-            refs: dict[tuple[int, ...], Any]) -> list[dict[str, Any]]:
+            quotas: dict[str, float], refs: dict[tuple[int, ...], Any]) -> list[dict[str, Any]]:
     runs = []
     for i in range(1, exp.repeat + 1):
         run = folder / f"run{i}"
@@ -356,7 +350,7 @@ def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces:
             continue
         print(f"{folder.name} run {i}/{exp.repeat}: {exp.robots} robots x {exp.edges} edges, "
               f"events: {', '.join(e.label() for e in events) or 'none'}", flush=True)
-        runs.append(_run_once(exp, run, events, traces, exp.seed + i - 1, refs))
+        runs.append(_run_once(exp, run, events, traces, quotas, exp.seed + i - 1, refs))
         print(summary_line(runs[-1]["summary"]), flush=True)
     return runs
 
@@ -370,8 +364,9 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     refs: dict[tuple[int, ...], Any] = {}
     with sigterm_interrupts():  # a SIGTERM to the harness stops its router, edges and robots too
-        runs = _series(exp, out, events, traces, refs)
-        base = _series(replace(exp, events=""), out / "baseline", [], traces, refs) if exp.baseline else None
+        runs = _series(exp, out, events, traces, quotas, refs)
+        base = (_series(replace(exp, events=""), out / "baseline", [], traces, quotas, refs) if exp.baseline
+                else None)
     agg = fr.aggregate([r["summary"] for r in runs])
     base_agg = fr.aggregate([r["summary"] for r in base]) if base else None
     per_robot = {rid: fr.aggregate([fr.robot_scalars(r["robots"][rid]) for r in runs])

@@ -29,7 +29,7 @@ import numpy as np
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.lab.link.trace import Trace, load_trace
 from zoffload.lab.runner import link_clock_start, run_offload
-from zoffload.robot.scanlog import RECORD_FIELDS
+from zoffload.robot.scanlog import RECORD_FIELDS, read_scan_rows
 from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.sources import open_scan_source
@@ -251,7 +251,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
                       max_scans / rate + 120, keep_interrupted=True)
     reply = run.reply
     wall_start = link_clock_start(out / "link.log")
-    recs = _read_scans(out / "robot_scans.csv")
+    recs = read_scan_rows(out / "robot_scans.csv")
     _with_link_rate(recs, trace, wall_start)
     _write_scans(out / "scans.csv", recs)
     metrics_path = out / "robot_metrics.json"
@@ -270,13 +270,6 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     row["cut_short"] = run.cut_short
     row["link_seed"] = link_seed
     return row
-
-
-def _read_scans(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    with open(path) as f:
-        return list(csv.DictReader(f))
 
 
 def summary_line(row: dict[str, Any]) -> str:

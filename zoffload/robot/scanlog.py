@@ -31,6 +31,15 @@ JUMP_SPAN = 10  # a switch further than this many scans from the poses before it
 LIVE = ("sending", "in_flight")  # statuses an ack or the sender may still change
 
 
+def read_scan_rows(path: Path) -> list[dict[str, Any]]:
+    """The rows of a ``robot_scans.csv`` this module wrote (every field a string); [] without the
+    file (a robot that never got as far as its first scan)."""
+    if not path.exists():
+        return []
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
 class Histogram:
     """Counts on log-spaced bins from 1 µs to 100 s (1 % wide): medians and percentiles of
     millions of values in 16 kB."""
