@@ -19,9 +19,14 @@ Fresh frames, not queues: the edge path holds as many frames as keep its bottlen
 base latency, ``ceil(r0 / bottleneck time)``, plus ``queue_frames`` waiting (at most ``window``),
 not as many as it takes (a fixed ratio fills the link's buffers, and its frames arrive late); the
 local detector takes a frame only if it would start it within ``slack`` camera periods (a later,
-fresher frame would be finished just as soon). A frame that no side takes, or that no side
-finishes within ``max_age`` of its capture, is skipped (its own bucket). A frame that would replace
-one already waiting in a side's one-slot queue counts against that side (one of the two is lost).
+fresher frame would be finished just as soon). A frame that neither side takes so goes to the edge
+all the same, a *spare*, while the window has room and the edge would finish it within
+``max_age``: a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
+and on a robot under a CPU quota the spare keeps the link busy while the whole process stalls (on
+the tuning half, capped link, a quarter core: skips 50 → 5 of 1250, async AP50 60.3 → 62.4). A
+frame that no side finishes within ``max_age`` of its capture is skipped (its own bucket). A
+frame that would replace one already waiting in a side's one-slot queue counts against that side
+(one of the two is lost).
 
 ``local_bias`` (one camera period, 40 ms) is how much sooner the local side must finish to be
 chosen: on the tuning half of the images NanoDet-m on a fresh frame scores what PicoDet-S scores
@@ -142,6 +147,7 @@ class Dispatcher(Strategy):
     _local_seen: float = -math.inf  # when the local detector last finished a frame
     _local_fresh: bool = False
     _local_results: int = 0
+    spares: int = 0  # frames sent beyond the depth instead of being skipped
 
     def __post_init__(self) -> None:
         self.window = float(self.max_in_flight)
@@ -263,7 +269,13 @@ class Dispatcher(Strategy):
         f_local, start = self.local_finish(st)
         if f_local <= deadline and start < st.now + self.slack * period and local_fits:
             options.append((st.local_waiting, f_local + self.local_bias, LOCAL))
-        if len(st.edge_sends) >= self.depth(st.now):
+        # Just in time: the edge path takes a frame while it holds fewer than its depth; beyond
+        # that, only a frame the local detector does not take either, while the window has room
+        # (a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
+        # and the spare frame keeps the link busy through the robot's CPU stalls)
+        in_depth = len(st.edge_sends) < self.depth(st.now)
+        spare = not options and not in_depth and len(st.edge_sends) < int(self.window)
+        if not (in_depth or spare):
             f_edge = math.inf
         if f_edge <= deadline:
             # A frame the edge loses is worth nothing: each loss weighs as a whole max_age
@@ -272,6 +284,8 @@ class Dispatcher(Strategy):
         self.estimates = (f_local, f_edge)
         if not options:
             return SKIP
+        if spare:
+            self.spares += 1
         side = min(options)[2]
         if side == EDGE:
             return self._to_edge(st)

@@ -382,4 +382,5 @@ class FrameBook:
             "records_on_disk": self.log.folder is not None,
             "per_edge": dict(self.per_edge),
             "other": {k: v for k, v in self.counters.items() if k not in bal},
+            "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
         }

@@ -109,11 +109,17 @@ def test_dispatch_sends_each_frame_to_the_side_that_finishes_it_first() -> None:
     # two frames already on their way: a third would queue behind them, local is sooner
     busy = {"edge_sends": ((0.99, 1e6), (0.995, 1e6)), "in_flight": 2}
     assert d.decide(_st(now=1.0, capture=1.0, **busy)) == LOCAL
-    # three keep the edge busy for a base latency (60 ms at 40 ms each) with one waiting: no fourth;
-    # and local is busy, with 20 ms of its 100 done: nothing starts this frame in time
+    # three keep the edge busy for a base latency (60 ms at 40 ms each) with one waiting; local is
+    # busy, with 20 ms of its 100 done, and would not start this frame in time: rather than skip
+    # it, the edge takes it as a spare while its window (4) has room, not once it is full
     full = {"edge_sends": ((0.98, 1e6), (0.99, 1e6), (0.995, 1e6)), "in_flight": 3}
-    assert d.depth(1.0) == 3
-    assert d.decide(_st(now=1.0, capture=1.0, local_busy=True, local_busy_for=0.02, **full)) == SKIP
+    assert d.depth(1.0) == 3 and d.window == 4
+    local_busy = {"local_busy": True, "local_busy_for": 0.02}
+    assert d.decide(_st(now=1.0, capture=1.0, **local_busy, **full)) == EDGE and d.spares == 1
+    window = {"edge_sends": ((0.97, 1e6), *full["edge_sends"]), "in_flight": 4}  # type: ignore[misc]
+    assert d.decide(_st(now=1.0, capture=1.0, **local_busy, **window)) == SKIP and d.spares == 1
+    # a spare only instead of a skip: with the local detector free, the fourth frame is local's
+    assert d.decide(_st(now=1.0, capture=1.0, **full)) == LOCAL and d.spares == 1
     # the local bias (its lighter model) tips a close call towards the edge
     close = _measured(local=0.05, edge=0.06, local_bias=0.04)
     assert close.decide(_st(now=1.0, capture=1.0)) == EDGE
@@ -129,11 +135,14 @@ def test_dispatch_skips_what_no_side_finishes_while_fresh() -> None:
     assert d.decide(_st(now=1.15, capture=1.0)) == SKIP
 
 
-def test_dispatch_learns_the_delivered_rate_and_keeps_the_link_busy_not_queued() -> None:
+@pytest.mark.parametrize("window", [3, 4])
+def test_dispatch_learns_the_delivered_rate_and_keeps_the_link_busy_not_queued(window: int) -> None:
     """A capped link: 1 MB frames at 16 MB/s take 62.5 ms each, more than the camera's 40 ms. A fixed
     ratio queues frames in the link's buffers; the dispatcher keeps as many in flight as keep the
-    link busy for a base latency, plus one: the link is used fully and no frame waits long."""
-    d = _measured(local=2.0, edge=0.11, max_age=1.0, local_bias=0.0)  # local: too slow to matter
+    link busy for a base latency, plus one, and sends a frame local cannot take as a spare while its
+    window has room: the link is used fully and no frame waits long."""
+    d = _measured(local=2.0, edge=0.11, max_age=1.0, local_bias=0.0,  # local: too slow to matter
+                  max_in_flight=window)
     sends: list[tuple[float, float]] = []  # (sent, answered) of the frames on their way
     rtts, last_answer, sides = [], 0.0, []
     for k in range(40):
@@ -151,8 +160,10 @@ def test_dispatch_learns_the_delivered_rate_and_keeps_the_link_busy_not_queued()
     assert d.interval(1e6, now) == pytest.approx(0.0625)
     assert d.depth(now) == 3  # 110 ms / 62.5 ms, rounded up, plus one waiting
     assert sides.count(EDGE) >= 24  # the link's 16 frames a second (1.6 s) are used ...
-    assert max(rtts) <= 0.11 + 2 * 0.0625 + 1e-9  # ... and none waits more than about a frame for it
+    # ... and none waits for it more than about a frame, or two with the spare the window allows
+    assert max(rtts) <= 0.11 + (window - 1) * 0.0625 + 1e-9
     assert set(sides) == {EDGE, SKIP}
+    assert (d.spares > 0) == (window > d.depth(now))
 
 
 def test_frames_that_never_return_keep_the_dispatcher_local_the_thesis_rule_does_not() -> None:
