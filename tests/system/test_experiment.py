@@ -115,3 +115,27 @@ def test_repeated_runs_make_one_row_with_mean_and_spread(tmp_path: Path) -> None
     r = subprocess.run(script("zoffload") + ["report", str(out)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "| rate+q16d (2 runs) | ethernet |" in (out / "report.md").read_text()
+
+
+def test_an_edge_that_cannot_listen_is_started_again_on_other_ports(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A port taken between being picked and the edge listening on it (a detection sweep lost a run
+    so): the edge really fails to bind (this test holds the port), and the run starts it again on
+    other ports instead of failing."""
+    import socket
+
+    from zoffload.lab import runner
+    from zoffload.lab.scan_experiment import ScanExperiment, run_scan_experiment
+    from zoffload.runtime.session import free_tcp_port
+
+    held = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    held.bind(("127.0.0.1", 0))  # bound, not listening: the edge cannot bind, a connection is refused
+    picks = iter([held.getsockname()[1]])
+    monkeypatch.setattr(runner, "free_tcp_port", lambda: next(picks, None) or free_tcp_port())
+    try:
+        row = run_scan_experiment(ScanExperiment(trace="ethernet", policy="fixed:0.1",
+                                                 out=str(tmp_path / "run"), max_scans=20))
+    finally:
+        held.close()
+    assert "start 1 of 3 failed" in capsys.readouterr().out
+    assert row["scans_sent"] == 20 and row["balance"]["in_flight"] == 0

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from zoffload.lab.eval.detection import detection_metrics
-from zoffload.lab.runner import frames_line, run_offload
+from zoffload.lab.runner import StartError, frames_line, run_offload
 from zoffload.runtime.config import (
     DetectorSettings,
     EdgeSettings,
@@ -180,13 +180,21 @@ def run_sweep(out: Path, traces: Sequence[str], strategies: Sequence[str],
               quotas: Sequence[float | None] | None = None, repeats: int = 1,
               **kw: Any) -> list[dict[str, Any]]:
     """Every strategy on every trace and CPU quota, ``repeats`` times; complete runs are skipped, and
-    an interrupted run (Ctrl-C) ends the sweep (run the same command again to resume)."""
+    an interrupted run (Ctrl-C) ends the sweep (run the same command again to resume). A run whose
+    edge never came up is reported (a row with ``error``) and the sweep goes on: hours of runs do
+    not end on one."""
     rows = []
     default = kw.pop("cpu_quota", 0.25)
     plan = sweep_runs(out, traces, strategies, quotas or [default], repeats, **kw)
     for k, exp in enumerate(plan, 1):
         print(f"[{k}/{len(plan)}]", end=" ", flush=True)
-        row = run_or_reuse(exp)
+        try:
+            row = run_or_reuse(exp)
+        except StartError as exc:
+            print(f"run not done, the sweep goes on: {exc}", flush=True)
+            rows.append({"kind": "detect", "strategy": exp.strategy, "trace": exp.trace, "out": exp.out,
+                         "error": f"start failed: {str(exc).splitlines()[0]}"})
+            continue
         rows.append(row)
         if row.get("cut_short"):
             print("sweep interrupted: run the same command again to resume", flush=True)

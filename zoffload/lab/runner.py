@@ -182,10 +182,34 @@ def loopback_zenoh(**kw: Any) -> ZenohSettings:
     return ZenohSettings(multicast_scouting=False, shared_memory=False, **kw)
 
 
+START_ATTEMPTS = 3  # an edge that did not come up is started again, on other ports
+
+
 def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
                 link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
                 line: Callable[[dict[str, float], float, int], str] = progress_line,
                 fetch: bool = True, on_watch: Callable[[zenoh.Session], None] | None = None) -> OffloadRun:
+    """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback,
+    the edge started again on other ports (``START_ATTEMPTS`` in all) when it does not come up: the
+    robot has not started then, so nothing of the run is lost (a port can be taken between the
+    moment it is picked and the moment the edge listens). See ``run_offload_once``."""
+    for attempt in range(1, START_ATTEMPTS + 1):
+        try:
+            return run_offload_once(out, edge, robot, trace, link_args, total, limit_s, keep_interrupted,
+                                    line, fetch, on_watch)
+        except StartError as exc:
+            if attempt == START_ATTEMPTS:
+                raise
+            first = str(exc).splitlines()[0]
+            print(f"start {attempt} of {START_ATTEMPTS} failed ({first}); again on other ports", flush=True)
+    raise AssertionError("unreachable")
+
+
+def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
+                     link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
+                     line: Callable[[dict[str, float], float, int], str] = progress_line,
+                     fetch: bool = True,
+                     on_watch: Callable[[zenoh.Session], None] | None = None) -> OffloadRun:
     """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
 
     The edge listens; the robot connects through the emulator in client mode (a peer could learn

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import random
 import socket
 from pathlib import Path
 from typing import Any
@@ -16,8 +17,29 @@ from zoffload.runtime.config import ZenohSettings
 from zoffload.runtime.errors import ZenohSessionError
 
 
+def ephemeral_ports() -> tuple[int, int]:
+    """The kernel's range of source ports for outgoing connections (Linux's default elsewhere)."""
+    try:
+        low, high = (int(x) for x in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
 def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port free on ``host`` right now (bind to port 0, read it back, release it)."""
+    """A TCP port free on ``host`` right now, below the kernel's ephemeral range where there is room
+    (from 20000). A port from ``bind(0)`` is an ephemeral one, and any outgoing connection may take
+    it as its source port between the moment it is picked and the moment its server listens on it:
+    a detection sweep's edge once failed to start so ("Address already in use")."""
+    low = ephemeral_ports()[0]
+    for _ in range(64) if low > 21000 else ():
+        port = random.randint(20000, low - 1)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])

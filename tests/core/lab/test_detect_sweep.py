@@ -50,6 +50,27 @@ def test_complete_runs_are_kept_and_an_interrupted_run_ends_the_sweep(
     assert len(rows) == 4 and rows[-1]["cut_short"]  # the third run was interrupted: the sweep stops
 
 
+def test_a_run_whose_edge_never_starts_is_reported_and_the_sweep_goes_on(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fake for a fault this test cannot cause on demand: every start of one run failing (its
+    edge's port taken each time, after the runner's own restarts on other ports)."""
+    from zoffload.lab.runner import StartError
+
+    ran: list[str] = []
+
+    def fake(exp: de.DetectExperiment) -> dict[str, Any]:
+        if exp.strategy == "edge":
+            raise StartError("the edge did not start:\nAddress already in use")
+        ran.append(exp.strategy)
+        return {"strategy": exp.strategy, "trace": exp.trace}
+
+    monkeypatch.setattr(de, "run_detect_experiment", fake)
+    rows = run_sweep(tmp_path, ["none"], ["robot", "edge", "dispatch"], [0.25], 1)
+    assert ran == ["robot", "dispatch"]
+    assert [r.get("error") for r in rows] == [None, "start failed: the edge did not start:", None]
+    assert rows[1]["out"].endswith("edge/run1")
+
+
 def test_a_single_experiment_repeats_into_run_folders(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     seen: list[str] = []
