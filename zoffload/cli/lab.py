@@ -135,7 +135,7 @@ def _run_detect_sweep(a: argparse.Namespace) -> int:
     rows = run_sweep(Path(a.out), a.traces or SWEEP_TRACES, a.strategies or SWEEP_STRATEGIES,
                      [q or None for q in a.cpu_quotas], a.repeat, **_detect_kw(a))
     print(f"sweep written to {a.out}; render it with: zoffload report {a.out}/*/*/*/run*")
-    failed = [r["out"] for r in rows if str(r.get("error", "")).startswith("start failed")]
+    failed = [r["out"] for r in rows if r.get("start_failed")]
     if failed:
         print(f"{len(failed)} run(s) not done (the edge did not start); run the same command again: "
               + ", ".join(failed))

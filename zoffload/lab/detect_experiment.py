@@ -193,7 +193,7 @@ def run_sweep(out: Path, traces: Sequence[str], strategies: Sequence[str],
         except StartError as exc:
             print(f"run not done, the sweep goes on: {exc}", flush=True)
             rows.append({"kind": "detect", "strategy": exp.strategy, "trace": exp.trace, "out": exp.out,
-                         "error": f"start failed: {str(exc).splitlines()[0]}"})
+                         "start_failed": True, "error": f"start failed: {str(exc).splitlines()[0]}"})
             continue
         rows.append(row)
         if row.get("cut_short"):

@@ -68,7 +68,7 @@ def test_a_run_whose_edge_never_starts_is_reported_and_the_sweep_goes_on(
     rows = run_sweep(tmp_path, ["none"], ["robot", "edge", "dispatch"], [0.25], 1)
     assert ran == ["robot", "dispatch"]
     assert [r.get("error") for r in rows] == [None, "start failed: the edge did not start:", None]
-    assert rows[1]["out"].endswith("edge/run1")
+    assert rows[1]["out"].endswith("edge/run1") and rows[1]["start_failed"]
 
 
 def test_a_single_experiment_repeats_into_run_folders(tmp_path: Path,
