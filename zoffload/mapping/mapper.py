@@ -78,6 +78,28 @@ def deskew_times(times: np.ndarray | None, n: int) -> np.ndarray:
     return (t - lo) / (hi - lo)
 
 
+MOTION_SPAN = 3  # scans the motion per scan is averaged over when a trajectory is handed over
+
+
+def motion_per_scan(seqs: np.ndarray, poses: np.ndarray, anchor: tuple[int, np.ndarray] | None = None,
+                    max_gap: int = 50, span: int = MOTION_SPAN) -> np.ndarray | None:
+    """KISS-ICP's ``last_delta`` (the motion of one scan period, in the body frame) from a handed-over
+    trajectory: the newest pose against the oldest one at most ``span`` scans before it (among
+    ``poses`` and ``anchor``, the pose the trajectory starts from), divided by their gap; None
+    with nothing to compare or a gap over ``max_gap``. Averaged over a few scans: the poses come
+    from the robot's coarse odometry, whose scan-to-scan steps are noisy."""
+    pairs = ([anchor] if anchor is not None else []) + list(zip(seqs.tolist(), poses, strict=True))
+    if len(pairs) < 2:
+        return None
+    last_seq, last = pairs[-1]
+    earlier = [(s, p) for s, p in pairs[:-1] if 0 < last_seq - s <= span] or [pairs[-2]]
+    first_seq, first = earlier[0]
+    gap = int(last_seq) - int(first_seq)
+    if not 0 < gap <= max_gap:
+        return None
+    return as_rigid(se3_power(np.linalg.inv(first) @ last, 1.0 / gap))
+
+
 class RobotMapper:
     """KISS-ICP odometry and a global map for one robot."""
 
@@ -166,6 +188,7 @@ class RobotMapper:
                          "this mapper's local map, continuing from its pose", checkpoint.robot,
                          checkpoint.voxel_size)
                 self.odometry.last_pose = as_rigid(checkpoint.pose)
+                self.odometry.last_delta = as_rigid(checkpoint.delta)  # the robot's motion, not ours
             else:
                 if not matches:
                     log.warning("checkpoint of %s made by a mapper configured otherwise (voxel %.3f m, "
@@ -178,11 +201,19 @@ class RobotMapper:
             self.last_seq = int(checkpoint.seq)
         seqs = np.asarray(local_seqs, np.int64).reshape(-1)
         poses = np.asarray(local_poses, np.float64).reshape(-1, 4, 4)
-        newer = seqs > (self.last_seq if self.last_seq is not None else -1)
+        start = self.last_seq
+        newer = seqs > (start if start is not None else -1)
         for s, p in zip(seqs[newer], poses[newer], strict=True):
             self.seqs.append(int(s))
             self.poses.append(p.copy())
         if newer.any():
+            # The constant-velocity model continues the robot's own motion: after seconds away, the
+            # motion this mapper saw last may be long over (stopped, turned, reversed), and stretched
+            # over the next gap it would put the next scan metres off
+            anchor = (start, np.array(self.odometry.last_pose, np.float64)) if start is not None else None
+            delta = motion_per_scan(seqs[newer], poses[newer], anchor, self.max_gap)
+            if delta is not None:
+                self.odometry.last_delta = delta
             self.odometry.last_pose = as_rigid(poses[newer][-1])
             self.last_seq = int(seqs[newer][-1])
         return seeded
