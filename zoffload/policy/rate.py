@@ -25,6 +25,10 @@ the periods it was meant to take) is one of three kinds (``late_cause``):
   the budget far below what the link carries (README "Ours");
 * the first scan after a stall (``stall``): held.
 
+Growth stops at what the link has shown it carries (``validated``): 1.5 times the largest recent
+scan, or the bytes per period a scan moved at (its bytes over its network time), whichever is
+larger. Without that, scans that do not fill the budget (sent as they are) let it grow unchecked.
+
 **Choice.** The finest size of ``voxel_range`` whose predicted bytes fit the budget. When none
 fits, the policy first widens the range (up to ``widen`` times its upper end: the edge's KISS-ICP
 registers on a grid 1.5 times its voxel, which the edge sizes to at least twice the range's end,
@@ -171,7 +175,7 @@ class LinkAwareScale:
                  grow_slow: float = 0.05, quiet: int = 50, widen: float = 2.0, max_skip: int = 2,
                  stall_after: float = 0.5, jitter_aware: bool = True, compress_share: float = 0.5,
                  refresh: int = 20, raw_share: float = 0.9, jitter_pace: int = 1,
-                 jitter_late: float = 0.25) -> None:
+                 jitter_late: float = 0.25, headroom: float = 1.5) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.in_range = len(self.candidates)
         self.candidates += widened_grid(*voxel_range, widen)
@@ -181,6 +185,7 @@ class LinkAwareScale:
         self.max_skip, self.stall_after, self.jitter_aware = max_skip, stall_after, jitter_aware
         self.compress_share, self.refresh, self.raw_share = compress_share, refresh, raw_share
         self.jitter_pace, self.jitter_late = jitter_pace, jitter_late
+        self.headroom = headroom
         self.start = min(max(start, self.candidates[0]), self.candidates[self.in_range - 1])
         self.name = "rate"
         self.reset()
@@ -227,8 +232,25 @@ class LinkAwareScale:
                 self._cut(link, cause)
         elif math.isfinite(self.budget):  # grows per period, not per ack: a paced link recovers as fast
             self.since_late += 1
-            self.budget *= (1 + (self.grow_fast if self.since_late >= self.quiet else self.grow_slow)) ** slot
+            growth = self.grow_fast if self.since_late >= self.quiet else self.grow_slow
+            grown = self.budget * (1 + growth) ** slot
+            self.budget = min(grown, max(self.budget, self.validated(link)))
         return self.budget
+
+    def validated(self, link: LinkView) -> float:
+        """How far the budget may grow on what the link has shown (inf: nothing shown yet). On time
+        is not proof of room when the scans do not fill the budget (sent as they are, or a scene
+        with fewer points): grown on that alone, it ran to seven times the scans sent, turned
+        compression off and put scans of three times the bytes on a 20 Mbps link, and the cuts after
+        took three late scans to reach the sizes sent (the idea of TCP's congestion window
+        validation, RFC 7661). The larger of ``headroom`` times the largest of the last scans sent,
+        and what the link moved in a period while a scan was on it (its bytes over its network
+        time, the median of the last scans: a lower bound of the link's rate, its delay included)."""
+        acks = [a for a in link.recent[-20:] if a.bytes > 0 and math.isfinite(a.net) and a.net > 0]
+        if self.headroom <= 0 or not acks:
+            return math.inf
+        rate = _median([a.bytes / a.net for a in acks])
+        return max(self.headroom * max(a.bytes for a in acks), rate * link.period)
 
     def _cut(self, link: LinkView, cause: str) -> None:
         """To what the link delivered in a period (x ``margin``), at most 80 % of before; with

@@ -272,3 +272,32 @@ def test_late_share_with_every_late_scan_cut_at_once() -> None:
     assert late_share[0.007, 10**9] == pytest.approx(0.03, abs=0.01)
     # the fast probe after a quiet spell (the default) adds a little: still under 5 %
     assert late_share[0.007, 10**9] < late_share[0.007, 50] < 0.05
+
+
+def test_the_budget_grows_only_as_far_as_the_link_has_shown_it_carries() -> None:
+    """Scans sent as they are (230 kB, HDL-64) on a 20 Mbps link, on time: the budget stops at 1.5
+    times them instead of growing 5 % a period until compression goes off (KITTI-360, `capped`:
+    budget 1.6 MB, 730 kB scans, 8 of 100 lost). On a fast link the same scans, whose bytes move
+    in 2 ms, let it grow on."""
+    def grow(net: float) -> float:
+        p = LinkAwareScale((0.02, 0.5))
+        p.budget = 250_000.0
+        acks = tuple(AckInfo(230_000, net, 0.1) for _ in range(20))
+        for i in range(100):
+            p.update_budget(LinkView(0.1, 2.3e6, 2.0, 0.1, acks=i, recent=acks))
+        return p.budget
+
+    slow = grow(0.092 + 0.010)  # 20 Mbps: 92 ms on the wire, plus the delay
+    assert slow == pytest.approx(1.5 * 230_000)
+    assert grow(0.002) > 20 * 230_000  # 115 MB/s shown: no cap in sight
+    # with nothing acked yet (or the cap off) the budget grows as before
+    p = LinkAwareScale((0.02, 0.5), headroom=0)
+    p.budget = 250_000.0
+    for i in range(100):
+        p.update_budget(LinkView(0.1, 2.3e6, 2.0, 0.1, acks=i, recent=(AckInfo(230_000, 0.102, 0.1),)))
+    assert p.budget == pytest.approx(250_000.0 * 1.05**100)
+    # a budget already above the cap is not lowered by it: only a late scan cuts
+    q = LinkAwareScale((0.02, 0.5))
+    q.budget = 1e6
+    q.update_budget(LinkView(0.1, 2.3e6, 2.0, 0.1, acks=1, recent=(AckInfo(230_000, 0.102, 0.1),)))
+    assert q.budget == 1e6
