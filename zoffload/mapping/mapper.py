@@ -2,8 +2,6 @@
 
 Scans lost on the way (a gap in the sequence numbers) stretch KISS-ICP's constant-velocity
 prediction over the gap; without it, one lost second of a moving robot derails the odometry.
-Such a scan may instead start from where the robot was last (it may have stopped, braked or
-turned back meanwhile), when that guess fits the local map better.
 
 A mapper can continue another's trajectory (``continue_from``): seeded from a checkpoint
 (mapping/checkpoint.py), its poses stay in the checkpoint's frame, and the poses the robot
@@ -80,25 +78,6 @@ def deskew_times(times: np.ndarray | None, n: int) -> np.ndarray:
     return (t - lo) / (hi - lo)
 
 
-GAP_FIT_MARGIN = 0.02  # share of the points the standing-still registration must fit better by
-
-
-def _voxel_keys(points: np.ndarray, r: float) -> np.ndarray:
-    k = np.floor(points / r).astype(np.int64) + (1 << 20)
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-
-
-def map_overlap(source: np.ndarray, pose: np.ndarray, occupied: np.ndarray, r: float) -> float:
-    """Share of ``source`` (registered at ``pose``) in voxels of size ``r`` that ``occupied`` (sorted
-    keys of the map's voxels) holds."""
-    pts = np.asarray(source, np.float64).reshape(-1, 3)
-    if not len(pts) or not len(occupied):
-        return 0.0
-    keys = _voxel_keys(pts @ pose[:3, :3].T + pose[:3, 3], r)
-    i = np.minimum(np.searchsorted(occupied, keys), len(occupied) - 1)
-    return float(np.mean(occupied[i] == keys))
-
-
 MOTION_SPAN = 3  # scans the motion per scan is averaged over when a trajectory is handed over
 
 
@@ -133,7 +112,6 @@ class RobotMapper:
         deskew: bool = False,
         map_resolution: float = 0.1,
         max_gap: int = 50,
-        standstill_guess: bool = True,
     ) -> None:
         KISSConfig, KissICP = load_kiss_icp()
         config = KISSConfig()
@@ -154,8 +132,6 @@ class RobotMapper:
         self.poses: list[np.ndarray] = []
         self.last_seq: int | None = None  # the scan the odometry's last pose belongs to
         self.registered = 0  # scans registered here (the trajectory also holds the robot's poses)
-        self.standstill_guess = standstill_guess  # a scan after a gap is also tried from the last pose
-        self.standstill_chosen = 0  # scans after a gap registered from that guess
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
@@ -171,17 +147,14 @@ class RobotMapper:
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        if stretch and self.standstill_guess:
-            keypoints = self._register_gap(frame, gap)
-        else:
-            if stretch:
-                self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
-            # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
-            frame_out, keypoints = self.odometry.register_frame(frame, stamps)
-            if len(stamps):
-                frame = np.asarray(frame_out)
-            if stretch:
-                self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
+        if stretch:
+            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
+        # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
+        frame_out, keypoints = self.odometry.register_frame(frame, stamps)
+        if len(stamps):
+            frame = np.asarray(frame_out)
+        if stretch:
+            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
         # Grow the global map with the scan in world coordinates
@@ -244,39 +217,6 @@ class RobotMapper:
             self.odometry.last_pose = as_rigid(poses[newer][-1])
             self.last_seq = int(seqs[newer][-1])
         return seeded
-
-    def _register_gap(self, frame: np.ndarray, gap: int) -> np.ndarray:
-        """KISS-ICP's ``register_frame`` (its own parts, in its order) for a scan ``gap`` periods
-        after the last, from the better of two initial guesses: the constant velocity stretched
-        over the gap, or standing still since the last pose. A robot that stopped, braked or turned
-        back while its scans were lost is metres from the first guess (six scans of a car stopping:
-        6.9 m, and ICP settles there). The guess that puts more of the scan's keypoints in occupied
-        voxels of the local map wins, the stretched one unless standing still is better by
-        ``GAP_FIT_MARGIN``; ICP runs once, from it (from a guess metres off it would take hundreds
-        of iterations, 120-190 ms on an HDL-64 scan). Returns the keypoints."""
-        odo = self.odometry
-        frame = odo.preprocessor.preprocess(frame, np.empty(0), odo.last_delta)  # range crop only
-        source, frame_down = odo.voxelize(frame)
-        sigma = odo.adaptive_threshold.get_threshold()
-        guess = odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap))
-        still = np.array(odo.last_pose)
-        if np.linalg.norm(guess[:3, 3] - still[:3, 3]) > 0.5 * self.voxel_size:  # they disagree
-            r = float(self.voxel_size)
-            occupied = np.unique(_voxel_keys(np.asarray(odo.local_map.point_cloud(), np.float64), r))
-            fit = [map_overlap(source, g, occupied, r) for g in (guess, still)]
-            if fit[1] > fit[0] + GAP_FIT_MARGIN:
-                guess = still
-                self.standstill_chosen += 1
-                log.debug("scan after a gap of %d: standing still fits %.2f, the stretched motion %.2f",
-                          gap, fit[1], fit[0])
-        new_pose = odo.registration.align_points_to_map(
-            points=source, voxel_map=odo.local_map, initial_guess=guess,
-            max_correspondance_distance=3 * sigma, kernel=sigma)
-        odo.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ new_pose)
-        odo.local_map.update(frame_down, new_pose)
-        odo.last_delta = as_rigid(se3_power(np.linalg.inv(odo.last_pose) @ new_pose, 1.0 / gap))
-        odo.last_pose = new_pose
-        return np.asarray(source)
 
     @property
     def map_points(self) -> int:
