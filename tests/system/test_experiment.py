@@ -74,9 +74,13 @@ def test_raw_degrades_on_a_bad_link_while_local_and_downsampled_do_not(tmp_path:
 
 def test_a_run_cut_short_still_writes_what_it_measured(tmp_path: Path) -> None:
     out = tmp_path / "cut"
+    # Ctrl-C as a user at a terminal sends it: with SIGINT's default action in the child (a shell
+    # running this suite in the background, as CI may, starts it with SIGINT ignored, and Python
+    # then installs no KeyboardInterrupt at all)
     p = subprocess.Popen(script("zoffload") + ["experiment", "scan", "--trace", "ethernet", "--policy",
                                                "fixed:0.05", "--out", str(out), "--max-scans", "600"],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     assert p.stdout is not None
     for line in p.stdout:  # wait until scans are being acked
