@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from zoffload.mapping.checkpoint import seed, take_checkpoint
-from zoffload.mapping.mapper import load_kiss_icp
+from zoffload.mapping.mapper import load_kiss_icp, motion_per_scan
 from zoffload.mapping.se3 import as_rigid, se3_power
 from zoffload.protocol import wire
 from zoffload.robot.scanlog import Histogram
@@ -101,9 +101,11 @@ class LocalOdometry:
         newer = [(s, p) for s, p in acked if last_seq is None or s > last_seq]
         if newer:
             s, p = newer[-1]
-            if len(newer) >= 2 and 0 < s - newer[-2][0] <= MAX_GAP:
-                prev_s, prev = newer[-2]
-                odo.last_delta = as_rigid(se3_power(np.linalg.inv(prev) @ p, 1.0 / (s - prev_s)))
+            seqs = np.array([q for q, _ in newer], np.int64)
+            delta = motion_per_scan(seqs, np.array([x for _, x in newer]), max_gap=MAX_GAP,
+                                    span=1)  # the edge's poses: its last step
+            if delta is not None:
+                odo.last_delta = delta
             odo.last_pose = as_rigid(p)
             last_seq = s
         with self._lock:
