@@ -56,6 +56,13 @@ from zoffload.sources.images import ImageFrame, open_image_source
 
 log = logging.getLogger("zoffload.robot.camera")
 
+# A put Zenoh holds longer than this is logged with its wall-clock span and counted (``slow_puts``).
+# Zenoh (1.10) holds a BLOCK put while its queue to the edge is full; when that edge's connection
+# closes meanwhile, Zenoh's transport close waits for the held put, up to its ``wait_before_close``
+# (5 s by default), before the edge's liveliness token is seen to go: the fallback then comes when
+# the put is let go, not at the kill (README, Perception offloading).
+SLOW_PUT_S = 1.0
+
 
 class LocalDetector(Protocol):
     """What the pipeline needs of the robot's own detector (detect/detector.py's ``Detector``)."""
@@ -292,10 +299,17 @@ class CameraOffloader:
             with self._lock:
                 self.book.records[reading.seq]["bytes"] = len(data)
                 self.bytes_sent += len(data)
+            put_start = time.time()
             try:
                 self._pub.put(data)
             except Exception as exc:  # a closing session; the frame's timeout books it
                 log.debug("frame %d not sent: %s", reading.seq, exc)
+            held = time.time() - put_start
+            if held > SLOW_PUT_S:
+                with self._lock:
+                    self.book.counters["slow_puts"] += 1
+                log.warning("frame %d: Zenoh held its put %.2f s (wall clock %.3f to %.3f): the link to "
+                            "the edge is congested or gone", reading.seq, held, put_start, put_start + held)
 
     # Main loop
     def dispatch(self, reading: Reading) -> None:

@@ -42,3 +42,19 @@ def test_repeated_runs_are_one_row_with_mean_and_sd(tmp_path: Path) -> None:
     assert "| **Dispatch (ours)** | 3 | 57.0 ± 2.0 |" in text
     assert "every frame in exactly one bucket in all of them" in text
     assert (tmp_path / "ap_vs_ratio_0.25core.png").exists()
+
+
+def test_jpeg_variants_are_rows_of_their_own_and_ours_meets_its_own_kind(tmp_path: Path) -> None:
+    """``S@jpeg`` strategies (the sweep's JPEG variants) make their own rows; ours with JPEG frames
+    is set against the fixed strategies with JPEG frames, ours on raw frames against the raw ones."""
+    cells = (("dispatch", 47.0), ("ratio:0.7", 48.0), ("edge", 33.0), ("dispatch@jpeg", 55.0),
+             ("ratio:0.7@jpeg", 53.0), ("edge@jpeg", 50.0))
+    folders = [_run(tmp_path / s.replace(":", "_").replace("@", "_") / "run1", s, ap) for s, ap in cells]
+    text = write_detect_report(folders, tmp_path).read_text()
+    assert "| Ratio 0.7 + JPEG | 1 | 53.0 |" in text and "| Dispatch (ours) + JPEG | 1 | 55.0 |" in text
+    order = [text.index(row) for row in ("| Ratio 0.7 | 1 |", "| Ratio 0.7 + JPEG | 1 |", "| Edge only |")]
+    assert order == sorted(order)
+    summary = targets(aggregate([json.loads((f / "results.json").read_text()) for f in folders]))
+    assert "| 47.0 | ratio 0.7: 48.0 | 33.0 | -1.0 | +14.0 |" in summary  # raw against raw
+    assert ("(JPEG frames, against the JPEG ones) | 0.25 core | 55.0 | ratio 0.7 + JPEG: 53.0 | 50.0 "
+            "| +2.0 | +5.0 |") in summary

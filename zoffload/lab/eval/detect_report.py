@@ -45,23 +45,45 @@ def is_detect_run(folder: Path) -> bool:
         return False
 
 
+def split(strategy: str) -> tuple[str, str]:
+    """``ratio:0.7@jpeg`` → (``ratio:0.7``, ``jpeg``); without ``@``, frames go raw (``bgr8``)."""
+    base, _, encoding = strategy.partition("@")
+    return base, encoding or "bgr8"
+
+
 def _order(strategy: str) -> float:
-    if strategy == "robot":
-        return 0.0
-    if strategy.startswith("ratio:"):
-        return float(strategy.split(":")[1])
-    return {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dynamic@jpeg": 3.5, "dispatch": 4.0,
-            "dispatch@jpeg": 4.5}.get(strategy, 5.0)
+    """Robot only 0, ratio r, edge only 1, then the rules; a JPEG variant right after its raw one."""
+    base, encoding = split(strategy)
+    if base == "robot":
+        order = 0.0
+    elif base.startswith("ratio:"):
+        try:
+            order = float(base.split(":", 1)[1])
+        except ValueError:
+            order = 5.0
+    else:
+        order = {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dispatch": 4.0}.get(base, 5.0)
+    return order + (0.001 if encoding != "bgr8" else 0.0)
 
 
 def offload_ratio(strategy: str) -> float | None:
     """The x position of a static strategy in the thesis' plots (robot 0, ratio r, edge 1)."""
-    return _order(strategy) if _order(strategy) <= 1.0 else None
+    order = _order(split(strategy)[0])
+    return order if order <= 1.0 else None
 
 
-def is_fixed(strategy: str) -> bool:
-    """Robot only, a fixed ratio or edge only, on raw frames: the baselines ours must beat."""
-    return offload_ratio(strategy) is not None
+def is_fixed(strategy: str, encoding: str = "bgr8") -> bool:
+    """Robot only, a fixed ratio or edge only, with frames in ``encoding``: the baselines ours must
+    beat (ours on raw frames against the raw ones, ours with JPEG frames against the JPEG ones)."""
+    return offload_ratio(strategy) is not None and split(strategy)[1] == encoding
+
+
+def row_name(strategy: str) -> str:
+    if strategy in ROW_NAMES:
+        return ROW_NAMES[strategy]
+    base, encoding = split(strategy)
+    name = ROW_NAMES.get(base, base.replace("ratio:", "Ratio "))
+    return name if encoding == "bgr8" else f"{name} + JPEG"
 
 
 def _key(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
@@ -109,7 +131,7 @@ def table(rows: list[dict[str, Any]], trace: str, quota: str) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: _order(r["strategy"])):
-        name = ROW_NAMES.get(r["strategy"], r["strategy"].replace("ratio:", "Ratio "))
+        name = row_name(r["strategy"])
         power = _cell(r, "power_w", ".1f") if r.get("power_available") else "n/a"
         lines.append(
             f"| {name} | {r['n']} | {_cell(r, 'ap50_async', '.1f')} "
@@ -128,19 +150,24 @@ def targets(rows: list[dict[str, Any]]) -> str:
              "| ours − edge only |",
              "|---|---|---|---|---|---|---|"]
     for (trace, quota), group in _cells(rows):
-        ours = next((r for r in group if r["strategy"] == OURS), None)
-        fixed = [r for r in group if is_fixed(r["strategy"]) and r.get("ap50_async") is not None]
-        if ours is None or ours.get("ap50_async") is None or not fixed:
-            continue
-        best = max(fixed, key=lambda r: r["ap50_async"])
-        edge = next((r for r in group if r["strategy"] == "edge"), None)
-        name = ROW_NAMES.get(best["strategy"], best["strategy"].replace("ratio:", "ratio "))
-        vs_edge = (f"{ours['ap50_async'] - edge['ap50_async']:+.1f}"
-                   if edge and edge.get("ap50_async") is not None else "–")
-        lines.append(f"| {LINK_NAMES.get(trace, trace)} | {quota} | {_cell(ours, 'ap50_async', '.1f')} "
-                     f"| {name}: {_cell(best, 'ap50_async', '.1f')} "
-                     f"| {_cell(edge, 'ap50_async', '.1f') if edge else '–'} "
-                     f"| {ours['ap50_async'] - best['ap50_async']:+.1f} | {vs_edge} |")
+        for encoding, ours_name in (("bgr8", OURS), ("jpeg", f"{OURS}@jpeg")):
+            ours = next((r for r in group if r["strategy"] == ours_name), None)
+            fixed = [r for r in group
+                     if is_fixed(r["strategy"], encoding) and r.get("ap50_async") is not None]
+            if ours is None or ours.get("ap50_async") is None or not fixed:
+                continue
+            best = max(fixed, key=lambda r: r["ap50_async"])
+            edge_name = "edge" if encoding == "bgr8" else "edge@jpeg"
+            edge = next((r for r in group if r["strategy"] == edge_name), None)
+            name = row_name(best["strategy"]).replace("Ratio ", "ratio ")
+            vs_edge = (f"{ours['ap50_async'] - edge['ap50_async']:+.1f}"
+                       if edge and edge.get("ap50_async") is not None else "–")
+            frames = "" if encoding == "bgr8" else " (JPEG frames, against the JPEG ones)"
+            lines.append(f"| {LINK_NAMES.get(trace, trace)}{frames} | {quota} "
+                         f"| {_cell(ours, 'ap50_async', '.1f')} "
+                         f"| {name}: {_cell(best, 'ap50_async', '.1f')} "
+                         f"| {_cell(edge, 'ap50_async', '.1f') if edge else '–'} "
+                         f"| {ours['ap50_async'] - best['ap50_async']:+.1f} | {vs_edge} |")
     lines += ["", "The best fixed strategy is the highest of eleven noisy means, so it is biased upwards; "
               "read a margin within the runs' spread as a tie."]
     return "\n".join(lines)
@@ -176,7 +203,8 @@ def plot(rows: list[dict[str, Any]], out: Path) -> list[Path]:
             for i, trace in enumerate(_traces(rs_q)):
                 rs = [r for r in rs_q if r["trace"] == trace]
                 pts = sorted((x, r[key], r["sd"].get(key, 0.0)) for r in rs
-                             if (x := offload_ratio(r["strategy"])) is not None and r.get(key) is not None)
+                             if (x := offload_ratio(r["strategy"])) is not None and r.get(key) is not None
+                             and split(r["strategy"])[1] == "bgr8")
                 color = f"C{i}"
                 if pts:
                     ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], fmt="o-",
