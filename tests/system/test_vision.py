@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
-import re
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -83,15 +83,15 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
     t_gone = t_kill  # when the robot could know
     if falls[0]["start"] - t_kill > 0.25:
         # The one known exception (robot/camera.py SLOW_PUT_S): the kill landed while Zenoh held a
-        # frame's put on a full queue, and its transport close waited for that put. Then the
-        # fallback must come within 250 ms of Zenoh letting the put go.
-        held = [(float(a), float(b)) for a, b in
-                re.findall(r"held its put .*wall clock ([\d.]+) to ([\d.]+)", robot.text())]
-        spans = [(a, b) for a, b in held if a <= t_kill <= b]
-        assert spans, why
+        # frame's put on a full queue, and its transport close waited for the held put (see the
+        # frozen-edge test below). Then the fallback must come by 250 ms after Zenoh let it go.
+        spans = [(p["start"], p["end"]) for p in m["slow_put_spans"]
+                 if p["start"] <= t_kill <= p["end"] and falls[0]["start"] <= p["end"] + 0.25]
+        assert spans, f"{why}\nputs Zenoh held over 1 s: {m['slow_put_spans']}"
         t_gone = spans[0][1]
         print(f"the kill came while Zenoh held a put ({t_gone - spans[0][0]:.2f} s); fallback "
-              f"{1e3 * (falls[0]['start'] - t_gone):.0f} ms after it let go")
+              f"{1e3 * (falls[0]['start'] - t_gone):+.0f} ms from when it let go")
+        t_gone = min(t_gone, falls[0]["start"])
     assert 0 <= falls[0]["start"] - t_gone <= 0.25, why  # fully local within 250 ms
     assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_restart, why  # resumed once it was back
     frames = _frames(run)
@@ -106,6 +106,53 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
     if strategy == "edge":  # (ours may find the robot's own detector the sooner side by then)
         assert any(f["status"] == "edge_done" for f in after)
     assert all(f["status"] != "pending" for f in frames)  # no frame left waiting
+
+
+def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
+        free_port: int, tmp_path: Path, coco_dir: Path, models_dir: Path) -> None:
+    """The edge process stopped (SIGSTOP) for 3 s, longer than the 2 s lease, then continued. It
+    reads nothing, so Zenoh holds the robot's put of a raw frame on the full queue; the lease runs
+    out and Zenoh closes the transport, and that close waits for the held put, up to Zenoh's
+    ``wait_before_close`` (5 s): the CI failure of the test above, made certain (fallback 5.02 s
+    after the stop here too). The robot counts the held put with its span, falls back no later than
+    250 ms after Zenoh let the put go, resumes when the edge answers again, and every frame is in
+    one bucket. (``wait_before_close`` at the 2 s lease made it 2.35 s, but cost the held-out
+    cellular scan runs 32 of 671 received scans and one run of three (2.28 m): not the default;
+    README, Perception offloading.) ``reply_timeout`` 5 s: the fallback comes from the edge's
+    token, not from losses."""
+    cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=400, reply_timeout=5.0,
+                      probe_period=0.3, resume_after=2)
+    with client(free_port) as s:
+        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+        try:
+            status = StatusWatcher(s, KEYS, "robot1")
+            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+            wait_for(lambda: status.values.get("edge_done", 0) >= 20 or robot.p.poll() is not None, 60,
+                     "edge results before the freeze")
+            assert robot.p.poll() is None, robot.text()
+            t_stop = time.time()
+            edge.p.send_signal(signal.SIGSTOP)
+            time.sleep(3.0)
+            t_cont = time.time()
+            edge.p.send_signal(signal.SIGCONT)
+            assert robot.wait(120) == 0, robot.text()
+        finally:
+            edge.p.send_signal(signal.SIGCONT)
+            edge.sigint()
+    m = json.loads((tmp_path / "robot" / "vision_metrics.json").read_text())
+    b = m["balance"]
+    assert m["balanced"] and b["frames_in"] == 400 and b["pending"] == 0, b
+    spans, falls = m["slow_put_spans"], m["fallbacks"]
+
+    def after(events: list[dict[str, Any]]) -> list[tuple[float, float]]:
+        return [(round(e["start"] - t_stop, 2), round(e["end"] - t_stop, 2)) for e in events]
+
+    print(f"s after the stop: puts held over 1 s {after(spans)}; fallbacks {after(falls)}")
+    assert m["other"].get("slow_puts", 0) == len(spans) >= 1, m["other"]
+    assert any(t_stop < p["start"] < t_stop + 1.0 for p in spans), after(spans)  # held in the freeze
+    # not before the lease ran out, not after the held put was let go (+ 250 ms)
+    assert falls and t_stop + 1.5 < falls[0]["start"] < max(p["end"] for p in spans) + 0.25, after(falls)
+    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont  # resumed once it answered
 
 
 def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,

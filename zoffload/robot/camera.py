@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -56,12 +57,15 @@ from zoffload.sources.images import ImageFrame, open_image_source
 
 log = logging.getLogger("zoffload.robot.camera")
 
-# A put Zenoh holds longer than this is logged with its wall-clock span and counted (``slow_puts``).
-# Zenoh (1.10) holds a BLOCK put while its queue to the edge is full; when that edge's connection
-# closes meanwhile, Zenoh's transport close waits for the held put, up to its ``wait_before_close``
-# (5 s by default), before the edge's liveliness token is seen to go: the fallback then comes when
-# the put is let go, not at the kill (README, Perception offloading).
+# A put Zenoh holds longer than this is counted (``slow_puts``) and its wall-clock span kept (the
+# newest ``SLOW_PUT_SPANS``, in vision_metrics.json). Zenoh (1.10) holds a BLOCK put while its
+# queue to the edge is full; when that edge's connection closes meanwhile, Zenoh's transport close
+# waits for the held put, up to its ``wait_before_close`` (5 s by default), before the edge's
+# liveliness token is seen to go: the fallback then comes when the put is let go, not at the kill
+# (README, Perception offloading). On a slow link every raw frame may take this long: logged at
+# most once a minute.
 SLOW_PUT_S = 1.0
+SLOW_PUT_SPANS = 20
 
 
 class LocalDetector(Protocol):
@@ -122,6 +126,8 @@ class CameraOffloader:
         self._send_cond = threading.Condition(self._lock)
         self._stopping = False
         self.bytes_sent = 0
+        self.slow_puts: deque[tuple[int, float, float]] = deque(maxlen=SLOW_PUT_SPANS)  # (seq, start, end)
+        self._slow_put_logged = -math.inf
         self.monitor: ResourceMonitor | None = None
         self._threads: list[threading.Thread] = []
 
@@ -304,12 +310,16 @@ class CameraOffloader:
                 self._pub.put(data)
             except Exception as exc:  # a closing session; the frame's timeout books it
                 log.debug("frame %d not sent: %s", reading.seq, exc)
-            held = time.time() - put_start
-            if held > SLOW_PUT_S:
+            put_end = time.time()
+            if put_end - put_start > SLOW_PUT_S:
                 with self._lock:
                     self.book.counters["slow_puts"] += 1
-                log.warning("frame %d: Zenoh held its put %.2f s (wall clock %.3f to %.3f): the link to "
-                            "the edge is congested or gone", reading.seq, held, put_start, put_start + held)
+                    self.slow_puts.append((reading.seq, put_start, put_end))
+                    count = self.book.counters["slow_puts"]
+                if put_end - self._slow_put_logged > 60.0:
+                    self._slow_put_logged = put_end
+                    log.warning("frame %d: Zenoh held its put %.2f s (%d such puts so far): the link to "
+                                "the edge is congested or gone", reading.seq, put_end - put_start, count)
 
     # Main loop
     def dispatch(self, reading: Reading) -> None:
@@ -411,10 +421,12 @@ class CameraOffloader:
         with self._lock:
             summary = self.book.summary(self._monitor_means())
             switches = self.choice.switches
+            slow = list(self.slow_puts)
         return {"robot": self.opts.robot_id, "source": self.source.name, "strategy": self.strategy.name,
                 "local_model": self.local.name, "encoding": self.opts.encoding,
                 "cpu_quota": self.opts.cpu_quota, "cpu_quota_applied": self.opts.quota_mode,
-                "power_available": RaplMonitor().available, "edge_switches": switches, **summary}
+                "power_available": RaplMonitor().available, "edge_switches": switches,
+                "slow_put_spans": [{"seq": q, "start": a, "end": b} for q, a, b in slow], **summary}
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
