@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+import zenoh
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
 from tests.system.procs import Proc, edge_args, script, start_edge
@@ -45,18 +46,30 @@ def _frames(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before: str) -> tuple[Proc, Proc]:
+    """An edge (detector only) and a robot with the settings ``cfg``, once the edge has answered 20
+    of the robot's frames; both are stopped again when that does not happen."""
+    edge = start_edge(session, edge_args(port, "--no-mapping"), tmp_path / "edge.log")
+    status = StatusWatcher(session, KEYS, "robot1")
+    robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+    try:
+        wait_for(lambda: status.values.get("edge_done", 0) >= 20 or robot.p.poll() is not None, 60,
+                 f"edge results before the {before}")
+        assert robot.p.poll() is None, robot.text()
+    except BaseException:
+        robot.sigint()
+        edge.sigint()
+        raise
+    return edge, robot
+
+
 @pytest.mark.parametrize("strategy", ["edge", "dispatch"])
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
                                                     models_dir: Path, strategy: str) -> None:
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy=strategy, max_frames=450, reply_timeout=0.5,
                       probe_period=0.3, resume_after=2)
     with client(free_port) as s:
-        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
-        status = StatusWatcher(s, KEYS, "robot1")
-        robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
-        wait_for(lambda: status.values.get("edge_done", 0) >= 20 or robot.p.poll() is not None, 60,
-                 "edge results before the kill")
-        assert robot.p.poll() is None, robot.text()
+        edge, robot = _served(s, free_port, tmp_path, cfg, "kill")
     t_kill = time.time()
     edge.p.kill()  # no goodbye
     edge.wait()
@@ -123,13 +136,8 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=400, reply_timeout=5.0,
                       probe_period=0.3, resume_after=2)
     with client(free_port) as s:
-        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+        edge, robot = _served(s, free_port, tmp_path, cfg, "freeze")
         try:
-            status = StatusWatcher(s, KEYS, "robot1")
-            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
-            wait_for(lambda: status.values.get("edge_done", 0) >= 20 or robot.p.poll() is not None, 60,
-                     "edge results before the freeze")
-            assert robot.p.poll() is None, robot.text()
             t_stop = time.time()
             edge.p.send_signal(signal.SIGSTOP)
             time.sleep(3.0)

@@ -203,8 +203,8 @@ def plot(rows: list[dict[str, Any]], out: Path) -> list[Path]:
             for i, trace in enumerate(_traces(rs_q)):
                 rs = [r for r in rs_q if r["trace"] == trace]
                 pts = sorted((x, r[key], r["sd"].get(key, 0.0)) for r in rs
-                             if (x := offload_ratio(r["strategy"])) is not None and r.get(key) is not None
-                             and split(r["strategy"])[1] == "bgr8")
+                             if is_fixed(r["strategy"]) and r.get(key) is not None
+                             and (x := offload_ratio(r["strategy"])) is not None)
                 color = f"C{i}"
                 if pts:
                     ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], fmt="o-",
