@@ -157,7 +157,9 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
 
     print(f"s after the stop: puts held over 1 s {after(spans)}; fallbacks {after(falls)}")
     assert m["other"].get("slow_puts", 0) == len(spans) >= 1, m["other"]
-    assert any(t_stop < p["start"] < t_stop + 1.0 for p in spans), after(spans)  # held in the freeze
+    # a put began while the edge was frozen and was still held when the 2 s lease ran out (how soon
+    # Zenoh's queue fills and holds it varies: 0.3-0.7 s here, 1.23 s once in CI)
+    assert any(t_stop < p["start"] < t_cont and p["end"] > t_stop + 2.0 for p in spans), after(spans)
     # not before the lease ran out, not after the held put was let go (+ 250 ms)
     assert falls and t_stop + 1.5 < falls[0]["start"] < max(p["end"] for p in spans) + 0.25, after(falls)
     assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont  # resumed once it answered
