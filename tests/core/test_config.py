@@ -128,7 +128,7 @@ def test_nested_environment_variables_and_their_values() -> None:
     s = load_settings(RobotSettings, None, None, ROBOT, env)
     assert s.voxel == 0.03 and s.voxel_range == (0.02, 0.5)
     assert s.perception.strategy == "edge" and s.perception.cpu_quota == 0.5
-    assert s.perception.encoding == "bgr8"  # the rest of the section keeps its defaults
+    assert s.perception.encoding == "auto"  # the rest of the section keeps its defaults
     assert s.zenoh.connect == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:7447"]
     assert s.zenoh.multicast_scouting is False and s.zenoh.mode == "peer"
     assert s.robot_id == "123" and s.rate_hz is None

@@ -4,6 +4,7 @@ and bad frames / unknown results counted instead of crashing anything."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import signal
@@ -18,6 +19,7 @@ import zenoh
 
 from tests.helpers import KEYS, client, listen_on, running_edge, wait_for, wait_token
 from tests.system.procs import Proc, edge_args, script, start_edge
+from tests.system.test_link import HEAD, emulator
 from zoffload.lab import runner
 from zoffload.lab.runner import StatusWatcher
 from zoffload.protocol import wire
@@ -67,7 +69,7 @@ def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
                                                     models_dir: Path, strategy: str) -> None:
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy=strategy, max_frames=450, reply_timeout=0.5,
-                      probe_period=0.3, resume_after=2)
+                      probe_period=0.3, resume_after=2, encoding="bgr8")
     with client(free_port) as s:
         edge, robot = _served(s, free_port, tmp_path, cfg, "kill")
     t_kill = time.time()
@@ -134,7 +136,7 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     README, Perception offloading.) ``reply_timeout`` 5 s: the fallback comes from the edge's
     token, not from losses."""
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=400, reply_timeout=5.0,
-                      probe_period=0.3, resume_after=2)
+                      probe_period=0.3, resume_after=2, encoding="bgr8")  # raw: 1.2 MB fill Zenoh's queue
     with client(free_port) as s:
         edge, robot = _served(s, free_port, tmp_path, cfg, "freeze")
         try:
@@ -163,6 +165,46 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     # not before the lease ran out, not after the held put was let go (+ 250 ms)
     assert falls and t_stop + 1.5 < falls[0]["start"] < max(p["end"] for p in spans) + 0.25, after(falls)
     assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont  # resumed once it answered
+
+
+@pytest.mark.parametrize("mbps", [None, 40])
+def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_where_not(
+        free_port: int, tmp_path: Path, coco_dir: Path, models_dir: Path, mbps: int | None) -> None:
+    """``encoding: auto`` through a real link: on loopback a trial raw frame takes the link a few ms
+    against the edge's ~40 ms per frame, and frames go raw from then on; through the link emulator
+    at 40 Mbps a raw frame takes ~250 ms, every trial says so, and frames stay JPEG (the trials
+    backing off: 1, 2, 4 s ... apart)."""
+    with contextlib.ExitStack() as stack:
+        port = free_port
+        if mbps is not None:  # the robot reaches the edge only through the emulated link
+            trace = tmp_path / "link.csv"
+            trace.write_text(HEAD + f"0, {mbps}, {mbps}, 2, 0, 0\n")
+            port = stack.enter_context(emulator(trace, free_port))[0]
+        cfg = _robot_yaml(tmp_path, port, coco_dir, strategy="edge", encoding="auto", max_frames=300)
+        with client(free_port) as s:
+            edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+            try:
+                robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+                assert robot.wait(120) == 0, robot.text()
+            finally:
+                edge.sigint()
+    run = tmp_path / "robot"
+    m = json.loads((run / "vision_metrics.json").read_text())
+    assert m["balanced"] and m["balance"]["edge_done"] >= 150, m["balance"]
+    enc = m["encodings"]
+    frames = [f for f in _frames(run) if f["status"] == "edge_done"]
+    trials = [f for f in frames if f["trial"] == "1"]
+    assert frames[0]["encoding"] == "jpeg" and enc["trials"] >= 1 and trials, enc  # JPEG until a trial
+    assert all(f["encoding"] == "bgr8" for f in trials)
+    if mbps is None:
+        assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
+        last = frames[-100:]
+        assert sum(f["encoding"] == "bgr8" for f in last) >= 95, enc  # raw once the trial said so
+        assert float(trials[0]["bytes"]) > 1e6  # a raw 848 x 480 frame
+    else:
+        assert enc["now"] == "jpeg" and enc["switches"] == 0, enc
+        assert 2 <= len(trials) <= 4, [f["seq"] for f in trials]  # 12 s: backing off 1, 2, 4, 8 s
+        assert sum(f["encoding"] == "jpeg" for f in frames) >= len(frames) - len(trials)
 
 
 def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,

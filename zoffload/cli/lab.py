@@ -95,8 +95,8 @@ def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
     p.add_argument("--repeat", type=int, default=3 if sweep else 1,
                    help="runs of each experiment, into OUT/.../run1 ... runN; runs already complete are "
                    f"kept, so the same command resumes (default {3 if sweep else 1})")
-    p.add_argument("--encoding", choices=["bgr8", "jpeg"], default="bgr8",
-                   help="frame encoding (default bgr8)")
+    p.add_argument("--encoding", choices=["bgr8", "jpeg", "auto"], default="bgr8",
+                   help="frame encoding (default bgr8; auto: chosen per frame by the link)")
     p.add_argument("--edge-threads", type=int, default=1,
                    help="inference threads of the edge's detector (default 1: robot and edge share this "
                    "machine, and an edge on every core is slowed by whatever the robot runs)")
@@ -242,7 +242,7 @@ def add_experiment(sub: Any) -> None:
                     help="default: none detect-capped wifi-locations mmwave-blockage (never tuned on)")
     sw.add_argument("--strategies", nargs="+", default=None,
                     help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic, dispatch "
-                    "(S@jpeg: strategy S with JPEG frames)")
+                    "(S@jpeg: strategy S with JPEG frames; S@auto: encoding chosen per frame)")
     _detect_arguments(sw, sweep=True)
     sw.set_defaults(func=_run_detect_sweep)
     fl = exs.add_parser("fleet",

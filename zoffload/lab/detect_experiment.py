@@ -38,7 +38,8 @@ from zoffload.runtime.config import (
 from zoffload.sources.images import CocoClipSource, open_image_source
 
 # The thesis' grid: robot-only, ratios 0.1 … 0.9, edge-only, its dynamic rule, our earlier rule and
-# our dispatcher, all with raw frames (``S@jpeg`` runs strategy S with JPEG frames)
+# our dispatcher, all with raw frames (``S@jpeg`` runs strategy S with JPEG frames, ``S@auto`` with the
+# encoding chosen per frame)
 SWEEP_STRATEGIES = ["robot", *[f"ratio:{r / 10:g}" for r in range(1, 10)], "edge", "thesis", "dynamic",
                     "dispatch"]
 # Its three links (unconstrained, capped at about 65 % of the raw stream, fluctuating Wi-Fi) and one

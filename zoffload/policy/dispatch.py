@@ -327,6 +327,11 @@ class Dispatcher(Strategy):
         self.losses.add(1.0)
         self.window = max(1.0, self.window - 1.0)
 
+    def on_encoding_change(self) -> None:
+        """The delivered rate and frame size were of the other encoding: measured again."""
+        self.delivered.samples.clear()
+        self.frame_bytes = Ewma(self.frame_bytes.alpha)
+
     def _answered(self, reply: EdgeReply) -> None:
         self.blocked = False
         self._last_answer = reply.result

@@ -112,6 +112,10 @@ class Strategy:
     def on_edge_timeout(self, waited: float) -> None:  # noqa: B027 - optional hook
         pass
 
+    def on_encoding_change(self) -> None:  # noqa: B027 - optional hook
+        """Frames to the edge now go in the other encoding (robot/encoding.py): estimates in
+        bytes of the old one no longer hold."""
+
 
 @dataclass
 class RobotOnly(Strategy):

@@ -44,6 +44,7 @@ from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.robot.edgechoice import EdgeChoice
+from zoffload.robot.encoding import JPEG, RAW, EncodingChoice
 from zoffload.robot.frames import FallbackRules, FrameBook, RobotView
 from zoffload.robot.presence import EdgePresence
 from zoffload.robot.preview import Offer, PreviewPublisher
@@ -85,7 +86,7 @@ class CameraOptions:
     fps: float
     max_frames: int | None = None
     replay: str = "once"  # a recorded source: once, loop or pingpong
-    encoding: str = "bgr8"  # "bgr8" or "jpeg"
+    encoding: str = RAW  # bgr8, jpeg, or auto: chosen per frame (robot/encoding.py)
     jpeg_quality: int = 80
     wait_edge: float = 5.0  # seconds to wait for the edge's subscriber to match at start
     cpu_quota: float | None = None  # reported in the metrics (applied by the server)
@@ -107,7 +108,8 @@ class CameraOffloader:
         self.keys = keys
         self.opts = options
         self.stop = stop
-        self.book = FrameBook(strategy, rules, keep=options.keep_frames, folder=options.out_dir)
+        self.book = FrameBook(strategy, rules, keep=options.keep_frames, folder=options.out_dir,
+                              encodings=EncodingChoice(options.encoding))
         self.choice = EdgeChoice(options.robot_id)  # the edge each frame goes to
         self.drops = Drops(log)
         self.camera = SensorThread(source, options.fps, options.replay, options.max_frames, name="camera")
@@ -268,10 +270,10 @@ class CameraOffloader:
                     del self._edge_images[next(iter(self._edge_images))]
             self._send_cond.notify()
 
-    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "") -> bytes:
+    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "", encoding: str = RAW) -> bytes:
         img = frame.image
         h, w = img.shape[:2]
-        if self.opts.encoding == "jpeg":
+        if encoding == JPEG:
             import cv2
 
             ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.opts.jpeg_quality])
@@ -281,7 +283,7 @@ class CameraOffloader:
         else:
             data = np.ascontiguousarray(img).reshape(-1)
         return wire.encode(wire.Frame(robot=self.opts.robot_id, seq=seq, send_stamp=now, capture_stamp=now,
-                                      encoding=self.opts.encoding, width=w, height=h, data=data, edge=edge))
+                                      encoding=encoding, width=w, height=h, data=data, edge=edge))
 
     def _sender(self) -> None:
         """Encodes and puts edge frames one at a time. The publisher blocks while the link is busy
@@ -295,15 +297,18 @@ class CameraOffloader:
                 if reading is None or not self.book.waiting_to_send(reading.seq):
                     continue  # already booked (lost when the edge went)
                 edge = self.book.edge_of(reading.seq)
+                encoding, _ = self.book.encoding_for(reading.seq, time.time())
+            encode_start = time.time()
             try:
-                data = self._encode(reading.frame, reading.seq, time.time(), edge)
+                data = self._encode(reading.frame, reading.seq, encode_start, edge, encoding)
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
-                    self.book.send_failed(reading.seq)
+                    self.book.send_failed(reading.seq, time.time())
                 log.error("frame %d: %s", reading.seq, exc)
                 continue
             with self._lock:
-                self.book.records[reading.seq]["bytes"] = len(data)
+                self.book.records[reading.seq].update(bytes=len(data),
+                                                      encode_ms=(time.time() - encode_start) * 1e3)
                 self.bytes_sent += len(data)
             put_start = time.time()
             try:

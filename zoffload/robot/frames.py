@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
+from zoffload.robot.encoding import EncodingChoice
 from zoffload.robot.framelog import FRAME_FIELDS, FrameLog
 
 __all__ = ["DONE", "DROPPED", "FRAME_FIELDS", "FallbackRules", "FrameBook", "RobotView"]
@@ -75,9 +76,10 @@ class FrameBook:
     ``folder`` (robot/framelog.py)."""
 
     def __init__(self, strategy: Strategy, rules: FallbackRules, keep: int | None = None,
-                 folder: Path | None = None) -> None:
+                 folder: Path | None = None, encodings: EncodingChoice | None = None) -> None:
         self.strategy = strategy
         self.rules = rules
+        self.encodings = encodings if encodings is not None else EncodingChoice("bgr8")
         self.counters: Counter[str] = Counter()
         self.log = FrameLog(keep, folder)
         self.records = self.log.records  # seq -> record (the newest ones)
@@ -148,6 +150,24 @@ class FrameBook:
         self.records[seq].update(send=now, probe=int(probe))
         self.in_flight[seq] = now
 
+    def encoding_for(self, seq: int, now: float) -> tuple[str, bool]:
+        """The encoding the sender gives this frame (or copy) now (robot/encoding.py), recorded."""
+        encoding, trial = self.encodings.pick(now)
+        self.records[seq].update(encoding=encoding, trial=int(trial))
+        self.counters[f"sent_{encoding}"] += 1
+        self.counters["encoding_trials"] += trial
+        return encoding, trial
+
+    def _encoding_lost(self, rec: dict[str, Any], now: float) -> None:
+        if rec.get("encoding") and self.encodings.lost(rec["encoding"], bool(rec.get("trial")), now):
+            self._encoding_switched(now)
+
+    def _encoding_switched(self, now: float) -> None:
+        self.counters["encoding_switches"] += 1
+        self.strategy.on_encoding_change()
+        _, to, why = self.encodings.events[-1]
+        log.info("frames to the edge now %s: %s", "raw" if to == "bgr8" else "JPEG", why)
+
     def edge_of(self, seq: int) -> str:
         """The edge a frame waiting to be sent goes to."""
         return str(self.records[seq].get("edge", ""))
@@ -162,9 +182,12 @@ class FrameBook:
         if self.in_flight.pop(seq, None) is not None:
             self.finish(seq, "dropped_send")
 
-    def send_failed(self, seq: int) -> None:
+    def send_failed(self, seq: int, now: float = -math.inf) -> None:
         """The frame could not be encoded for the link (a copy's frame is still detected locally;
         a frame booked meanwhile keeps its bucket)."""
+        rec = self.records.get(seq)
+        if rec is not None:
+            self._encoding_lost(rec, now)
         if self.copies.pop(seq, None) is not None:
             self.counters["copies_failed"] += 1
             return
@@ -260,12 +283,21 @@ class FrameBook:
         idle time too)."""
         nbytes = float(rec.get("bytes", NAN))
         if status != "ok":  # an overflowing edge answers at once: no sample of its pace
+            if rec.get("trial"):  # nor of the link: the trial is over, tried again later
+                self._encoding_lost(rec, now)
             return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
         queued = sent < self._last_arrival and self._last_answer < now
-        rate = nbytes / (now - self._last_answer) if queued and math.isfinite(nbytes) else NAN
+        gap = now - self._last_answer if queued else NAN
+        rate = nbytes / gap if math.isfinite(nbytes) else NAN
         self._last_answer = now
         edge_time = sum(x for x in (service, queued_at_edge) if math.isfinite(x))
         self._last_arrival = now - edge_time  # when it reached the edge, near enough (robot clock)
+        if rec.get("encoding"):
+            if self.encodings.answered(rec["encoding"], bool(rec.get("trial")), sent, now, edge_time,
+                                       float(rec.get("encode_ms", NAN)) / 1e3, service, gap):
+                self._encoding_switched(now)
+            if rec.get("trial"):  # the strategy sees a trial's time only: its size is not the others'
+                nbytes = rate = NAN
         return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,
                          status=status)
 
@@ -276,6 +308,7 @@ class FrameBook:
         for seq, sent in [(k, t) for k, t in self.copies.items() if now - t > self.rules.reply_timeout]:
             del self.copies[seq]
             self.counters["copies_lost"] += 1
+            self._encoding_lost(self.records[seq], now)
             self.strategy.on_edge_timeout(now - sent)
         overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.rules.reply_timeout]
         for seq in overdue:
@@ -315,6 +348,7 @@ class FrameBook:
         self.in_flight.pop(seq, None)
         self.finish(seq, "edge_lost")
         rec = self.records[seq]
+        self._encoding_lost(rec, now)
         self.strategy.on_edge_timeout(now - rec["send"])
         if rec.get("probe"):
             self._probe_streak = 0
@@ -383,4 +417,5 @@ class FrameBook:
             "per_edge": dict(self.per_edge),
             "other": {k: v for k, v in self.counters.items() if k not in bal},
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
+            "encodings": self.encodings.summary(),
         }

@@ -221,9 +221,9 @@ class PerceptionSettings(_Strict):
     replay: Replay = Field(
         default="once", description="how a recorded image source is replayed (loop: over and over, a soak)"
     )
-    encoding: Literal["bgr8", "jpeg"] = Field(
-        default="bgr8",
-        description="frames to the edge raw (bgr8) or as JPEG",
+    encoding: Literal["bgr8", "jpeg", "auto"] = Field(
+        default="auto",
+        description="frames to the edge: bgr8 (raw), jpeg, or auto (chosen per frame by the link)",
     )
     jpeg_quality: int = Field(default=80, ge=1, le=100, description="JPEG quality of frames sent as jpeg")
     cpu_max: float = Field(

@@ -58,3 +58,16 @@ def test_jpeg_variants_are_rows_of_their_own_and_ours_meets_its_own_kind(tmp_pat
     assert "| 47.0 | ratio 0.7: 48.0 | 33.0 | -1.0 | +14.0 |" in summary  # raw against raw
     assert ("(JPEG frames, against the JPEG ones) | 0.25 core | 55.0 | ratio 0.7 + JPEG: 53.0 | 50.0 "
             "| +2.0 | +5.0 |") in summary
+
+
+def test_ours_choosing_the_encoding_per_frame_meets_the_best_fixed_of_either_encoding(tmp_path: Path) -> None:
+    """``dispatch@auto`` (the default encoding) is set against every fixed strategy, raw or JPEG,
+    and its edge-only column is the better of raw and JPEG edge-only."""
+    cells = (("ratio:0.7", 48.0), ("edge", 33.0), ("ratio:0.9@jpeg", 59.0), ("edge@jpeg", 50.0),
+             ("dispatch@auto", 58.0))
+    folders = [_run(tmp_path / s.replace(":", "_").replace("@", "_") / "run1", s, ap) for s, ap in cells]
+    text = write_detect_report(folders, tmp_path).read_text()
+    assert "| **Dispatch (ours)** + encoding per frame | 1 | 58.0 |" in text
+    summary = targets(aggregate([json.loads((f / "results.json").read_text()) for f in folders]))
+    assert ("(encoding per frame, against raw and JPEG ones) | 0.25 core | 58.0 | ratio 0.9 + JPEG: 59.0 "
+            "| 50.0 | -1.0 | +8.0 |") in summary
