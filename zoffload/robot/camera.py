@@ -306,9 +306,11 @@ class CameraOffloader:
                     self.book.send_failed(reading.seq, time.time())
                 log.error("frame %d: %s", reading.seq, exc)
                 continue
+            encode_ms = (time.time() - encode_start) * 1e3
             with self._lock:
-                self.book.records[reading.seq].update(bytes=len(data),
-                                                      encode_ms=(time.time() - encode_start) * 1e3)
+                rec = self.book.records.get(reading.seq)
+                if rec is not None:
+                    rec.update(bytes=len(data), encode_ms=encode_ms)
                 self.bytes_sent += len(data)
             put_start = time.time()
             try:

@@ -11,18 +11,20 @@ cap: 55.0 against 46.4; a Wi-Fi walk 52.4 against 22.9). ``auto`` measures which
   answers is the link's time for the later frame's bytes (robot/frames.py), a sample of the link's
   time per raw frame. When the median of the recent samples is above the edge's detector service
   time (``leave`` x: the link, not the detector, is the bottleneck) or a raw frame is lost, frames
-  go as JPEG.
+  go as JPEG. (An encoding that fails, or an edge that refuses a frame, says nothing of the link:
+  only a trial frame lost so ends its trial.)
 * **JPEG frames** do not show whether the link would carry raw ones (the edge's detector is then
   the bottleneck, and the gaps show its pace). So one frame now and then goes raw, a *trial*: its
   link time is its send-to-answer time less the edge's time, less its encoding, less the path's
   base latency (the shortest recent one of the JPEG frames, measured the same way). A trial within
   the edge's service time switches to raw; a slower one, and every switch back to JPEG, doubles
-  the wait before the next trial (``first_trial`` s up to ``max_wait``; back to ``first_trial``
-  after ``settled`` s of raw frames), so a slow link pays one raw frame a minute at most and a
-  link on the edge of the two does not flutter. No trial while the JPEG frames themselves are
-  link-bound (their answers' gaps over ``leave`` x the service time): a raw frame, ~15 times the
-  bytes, would hold a slow link for seconds (a held-out cellular uplink, 2-40 Mbps: 5 trials in a
-  50 s run cost 5.7 async AP50 points against plain JPEG); the trial waits, doubling, instead.
+  the wait before the next trial (``first_trial`` s up to ``max_wait``; back to twice
+  ``first_trial`` when raw frames held for ``settled`` s), so a slow link pays one raw frame a
+  minute at most and a link on the edge of the two does not flutter. No trial while the JPEG
+  frames themselves are link-bound (their answers' gaps over ``leave`` x the service time): a raw
+  frame, ~15 times the bytes, would hold a slow link for seconds (a held-out cellular uplink,
+  2-40 Mbps: 5 trials in a 50 s run cost 5.7 async AP50 points against plain JPEG); the trial
+  waits, doubling, instead.
 
 The trial frame is a real frame (detected and counted like the others); the strategy is told its
 reply without bytes and rate, so its size does not distort the dispatcher's estimates, and every
@@ -76,7 +78,7 @@ class EncodingChoice:
     def pick(self, now: float) -> tuple[str, bool]:
         """The encoding of the next frame to the edge, and whether it is a trial of raw frames."""
         if self.trial_out and now - self.trial_at > self.max_wait:  # its answer or loss never came
-            self.trial_out = False
+            self.lost(RAW, True, now)
         if (self.mode == AUTO and self.current == JPEG and not self.trial_out
                 and now >= self.next_trial
                 and math.isfinite(self.edge_service.value) and self.base.samples):

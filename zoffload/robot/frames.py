@@ -182,11 +182,12 @@ class FrameBook:
         if self.in_flight.pop(seq, None) is not None:
             self.finish(seq, "dropped_send")
 
-    def send_failed(self, seq: int, now: float = -math.inf) -> None:
+    def send_failed(self, seq: int, now: float) -> None:
         """The frame could not be encoded for the link (a copy's frame is still detected locally;
-        a frame booked meanwhile keeps its bucket)."""
+        a frame booked meanwhile keeps its bucket). A trial of raw frames that failed so is over
+        (a failed encoding says nothing of the link otherwise)."""
         rec = self.records.get(seq)
-        if rec is not None:
+        if rec is not None and rec.get("trial") and self.waiting_to_send(seq):
             self._encoding_lost(rec, now)
         if self.copies.pop(seq, None) is not None:
             self.counters["copies_failed"] += 1
@@ -285,6 +286,7 @@ class FrameBook:
         if status != "ok":  # an overflowing edge answers at once: no sample of its pace
             if rec.get("trial"):  # nor of the link: the trial is over, tried again later
                 self._encoding_lost(rec, now)
+                nbytes = NAN
             return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
         queued = sent < self._last_arrival and self._last_answer < now
         gap = now - self._last_answer if queued else NAN
@@ -326,8 +328,7 @@ class FrameBook:
         """The edge-presence watcher's news: the last edge gone books everything in flight lost."""
         self.edge_present = present
         if not present:
-            self.counters["copies_lost"] += len(self.copies)
-            self.copies.clear()
+            self._drop_copies(list(self.copies), now)
             for seq in list(self.in_flight):
                 self._book_lost(seq, now)
             self._enter_fallback(now, "edge liveliness lost")
@@ -339,10 +340,16 @@ class FrameBook:
         lost = [seq for seq in self.in_flight if self.records[seq].get("edge") == edge]
         for seq in lost:
             self._book_lost(seq, now)
-        for seq in [k for k in self.copies if self.records[k].get("edge") == edge]:
+        self._drop_copies([k for k in self.copies if self.records[k].get("edge") == edge], now)
+        return lost
+
+    def _drop_copies(self, seqs: list[int], now: float) -> None:
+        """Copies that will not be answered (their edge went, or the run ends): counted, and a
+        trial of raw frames among them is over."""
+        for seq in seqs:
             del self.copies[seq]
             self.counters["copies_lost"] += 1
-        return lost
+            self._encoding_lost(self.records[seq], now)
 
     def _book_lost(self, seq: int, now: float) -> None:
         self.in_flight.pop(seq, None)
@@ -377,8 +384,7 @@ class FrameBook:
         waiting for the local detector."""
         if send_waiting is not None:
             self.send_replaced(send_waiting)
-        self.counters["copies_lost"] += len(self.copies)
-        self.copies.clear()
+        self._drop_copies(list(self.copies), now)
         for seq in list(self.in_flight):
             self._book_lost(seq, now)
         if local_waiting is not None:

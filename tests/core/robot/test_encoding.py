@@ -86,7 +86,28 @@ def test_a_trial_whose_answer_never_comes_does_not_stop_the_trials() -> None:
     jpeg_answer(c, 0.0)
     assert c.pick(1.1) == (RAW, True)
     assert c.pick(30.0) == (JPEG, False)
-    assert c.pick(1.1 + c.max_wait + 0.1) == (RAW, True)
+    late = 1.1 + c.max_wait + 0.1
+    assert c.pick(late) == (JPEG, False)  # over, as if lost: the wait doubles
+    assert not c.trial_out and c.next_trial == pytest.approx(late + 2.0)
+    assert c.pick(late + 2.0) == (RAW, True)
+
+
+def test_a_trial_sent_as_a_copy_is_over_when_its_edge_goes() -> None:
+    """A trial frame may be a dispatcher's copy (the frame detected locally, the copy measuring the
+    edge); when the edge goes, the copy is dropped and the trial is over (not waiting a minute)."""
+    b = FrameBook(Dispatcher(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
+    b.edges_changed(True, 0.0)
+    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+    b.decide(1, 1, 0.0, 0.0)
+    b.sent(1, 0.0, False)
+    b.encoding_for(1, 0.0)
+    b.edge_result(1, "ok", 0.08, SERVICE, 0.0, *empty)
+    b.decide(2, 2, 1.2, 1.2)
+    b.sent(2, 1.2, False, copy=True)
+    assert b.encoding_for(2, 1.2) == (RAW, True)
+    b.edges_changed(False, 1.3)
+    enc = b.encodings
+    assert not enc.trial_out and enc.next_trial == pytest.approx(3.3) and b.counters["copies_lost"] == 1
 
 
 def test_fixed_encodings_never_change_and_a_wrong_one_is_refused() -> None:

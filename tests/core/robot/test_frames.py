@@ -254,7 +254,7 @@ def test_a_frame_booked_lost_while_it_waits_for_the_link_is_not_booked_again() -
         b.sent(seq, 0.1 * seq, False)
     b.edges_changed(False, 0.25)  # every frame in flight, the one in the slot too, booked lost
     b.send_replaced(2)  # the slot's frame replaced afterwards
-    b.send_failed(1)  # an encoding failure reported after the loss
+    b.send_failed(1, 0.3)  # an encoding failure reported after the loss
     bal = b.balance()
     assert bal["edge_lost"] == 3 and bal["dropped_send"] == 0 and bal["error"] == 0
     assert b.balanced() and b.counters["rebooked"] == 0
