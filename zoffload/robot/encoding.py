@@ -84,8 +84,7 @@ class EncodingChoice:
                 and math.isfinite(self.edge_service.value) and self.base.samples):
             if self.jpeg_bound(now):  # the link holds up even JPEG frames: a raw one would take ~15x
                 self.trials_skipped += 1
-                self.wait = min(2 * self.wait, self.max_wait)
-                self.next_trial = now + self.wait
+                self._back_off(now)
                 return JPEG, False
             self.trial_out, self.trial_at = True, now
             self.trials += 1
@@ -123,8 +122,7 @@ class EncodingChoice:
             if self.current == JPEG and math.isfinite(limit) and link <= limit:
                 return self._switch(RAW, result, f"a raw frame took the link {1e3 * link:.0f} ms, the "
                                                   f"edge's detector {1e3 * limit:.0f} ms")
-            self.wait = min(2 * self.wait, self.max_wait)
-            self.next_trial = result + self.wait
+            self._back_off(result)
             return False
         if self.current == RAW and math.isfinite(link_time):
             self.raw_link.add(result, link_time)
@@ -139,20 +137,22 @@ class EncodingChoice:
         says otherwise. True when the encoding switched."""
         if self.mode != AUTO or encoding != RAW:
             return False
-        now = now if math.isfinite(now) else max(self.trial_at, self.raw_since, 0.0)
         if trial:
             self.trial_out = False
-            self.wait = min(2 * self.wait, self.max_wait)
-            self.next_trial = now + self.wait
+            self._back_off(now)
             return False
         return self._to_jpeg(now, "a raw frame was lost") if self.current == RAW else False
 
     def _to_jpeg(self, now: float, why: str) -> bool:
         if now - self.raw_since > self.settled:  # raw held long: the link changed, not a flutter
             self.wait = self.first_trial
+        self._back_off(now)
+        return self._switch(JPEG, now, why)
+
+    def _back_off(self, now: float) -> None:
+        """The next trial twice as far off as the last wait (at most ``max_wait``), from ``now``."""
         self.wait = min(2 * self.wait, self.max_wait)
         self.next_trial = now + self.wait
-        return self._switch(JPEG, now, why)
 
     def _switch(self, to: str, now: float, why: str) -> bool:
         self.current = to

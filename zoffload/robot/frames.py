@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
-from zoffload.robot.encoding import EncodingChoice
+from zoffload.robot.encoding import RAW, EncodingChoice
 from zoffload.robot.framelog import FRAME_FIELDS, FrameLog
 
 __all__ = ["DONE", "DROPPED", "FRAME_FIELDS", "FallbackRules", "FrameBook", "RobotView"]
@@ -79,7 +79,7 @@ class FrameBook:
                  folder: Path | None = None, encodings: EncodingChoice | None = None) -> None:
         self.strategy = strategy
         self.rules = rules
-        self.encodings = encodings if encodings is not None else EncodingChoice("bgr8")
+        self.encodings = encodings if encodings is not None else EncodingChoice(RAW)
         self.counters: Counter[str] = Counter()
         self.log = FrameLog(keep, folder)
         self.records = self.log.records  # seq -> record (the newest ones)
@@ -155,18 +155,16 @@ class FrameBook:
         encoding, trial = self.encodings.pick(now)
         self.records[seq].update(encoding=encoding, trial=int(trial))
         self.counters[f"sent_{encoding}"] += 1
-        self.counters["encoding_trials"] += trial
         return encoding, trial
 
     def _encoding_lost(self, rec: dict[str, Any], now: float) -> None:
         if rec.get("encoding") and self.encodings.lost(rec["encoding"], bool(rec.get("trial")), now):
-            self._encoding_switched(now)
+            self._encoding_switched()
 
-    def _encoding_switched(self, now: float) -> None:
-        self.counters["encoding_switches"] += 1
+    def _encoding_switched(self) -> None:
         self.strategy.on_encoding_change()
         _, to, why = self.encodings.events[-1]
-        log.info("frames to the edge now %s: %s", "raw" if to == "bgr8" else "JPEG", why)
+        log.info("frames to the edge now %s: %s", "raw" if to == RAW else "JPEG", why)
 
     def edge_of(self, seq: int) -> str:
         """The edge a frame waiting to be sent goes to."""
@@ -297,7 +295,7 @@ class FrameBook:
         if rec.get("encoding"):
             if self.encodings.answered(rec["encoding"], bool(rec.get("trial")), sent, now, edge_time,
                                        float(rec.get("encode_ms", NAN)) / 1e3, service, gap):
-                self._encoding_switched(now)
+                self._encoding_switched()
             if rec.get("trial"):  # the strategy sees a trial's time only: its size is not the others'
                 nbytes = rate = NAN
         return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,

@@ -148,7 +148,7 @@ def test_the_book_hides_a_trials_size_from_the_dispatcher_and_resets_it_on_a_swi
     b.records[seq].update(bytes=1_220_000, encode_ms=0.5)
     bytes_before = d.frame_bytes.value
     b.edge_result(seq, "ok", t + 0.07, SERVICE, 0.0, *empty)  # 70 ms: 10 ms of link beyond a JPEG's
-    assert b.encodings.current == RAW and b.counters["encoding_switches"] == 1
+    assert b.encodings.current == RAW and b.encodings.switches == 1
     assert not d.delivered.samples and math.isnan(d.frame_bytes.value) and bytes_before < 200_000
     assert b.records[seq]["status"] == "edge_done"  # the trial frame is a frame like the others
     assert b.summary()["encodings"]["now"] == RAW and b.counters["sent_jpeg"] == 16

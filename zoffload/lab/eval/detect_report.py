@@ -163,8 +163,7 @@ def targets(rows: list[dict[str, Any]]) -> str:
             edges = [r for r in fixed if split(r["strategy"])[0] == "edge"]
             edge = max(edges, key=lambda r: r["ap50_async"]) if edges else None
             name = row_name(best["strategy"]).replace("Ratio ", "ratio ")
-            vs_edge = (f"{ours['ap50_async'] - edge['ap50_async']:+.1f}"
-                       if edge and edge.get("ap50_async") is not None else "–")
+            vs_edge = f"{ours['ap50_async'] - edge['ap50_async']:+.1f}" if edge else "–"
             frames = {"bgr8": "", "jpeg": " (JPEG frames, against the JPEG ones)",
                       "auto": " (encoding per frame, against raw and JPEG ones)"}[encoding]
             lines.append(f"| {LINK_NAMES.get(trace, trace)}{frames} | {quota} "
