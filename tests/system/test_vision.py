@@ -69,7 +69,7 @@ def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
                                                     models_dir: Path, strategy: str) -> None:
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy=strategy, max_frames=450, reply_timeout=0.5,
-                      probe_period=0.3, resume_after=2, encoding="bgr8")
+                      probe_period=0.3, resume_after=2, encoding="bgr8", send_size="camera")
     with client(free_port) as s:
         edge, robot = _served(s, free_port, tmp_path, cfg, "kill")
     t_kill = time.time()
@@ -136,7 +136,8 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     README, Perception offloading.) ``reply_timeout`` 5 s: the fallback comes from the edge's
     token, not from losses."""
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=400, reply_timeout=5.0,
-                      probe_period=0.3, resume_after=2, encoding="bgr8")  # raw: 1.2 MB fill Zenoh's queue
+                      probe_period=0.3, resume_after=2, encoding="bgr8",
+                      send_size="camera")  # whole raw frames: 1.2 MB fill Zenoh's queue
     with client(free_port) as s:
         edge, robot = _served(s, free_port, tmp_path, cfg, "freeze")
         try:
@@ -200,11 +201,53 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
         last = frames[-100:]
         assert sum(f["encoding"] == "bgr8" for f in last) >= 95, enc  # raw once the trial said so
-        assert float(trials[0]["bytes"]) > 1e6  # a raw 848 x 480 frame
+        assert float(trials[-1]["bytes"]) > 416 * 416 * 3  # a raw frame (shrunk to PicoDet's 416 x 416)
     else:
         assert enc["now"] == "jpeg" and enc["switches"] == 0, enc
         assert 2 <= len(trials) <= 4, [f["seq"] for f in trials]  # 12 s: backing off 1, 2, 4, 8 s
         assert sum(f["encoding"] == "jpeg" for f in frames) >= len(frames) - len(trials)
+
+
+def test_frames_shrunk_to_the_edge_detector_input_get_the_boxes_of_the_whole_frame(
+        free_port: int, tmp_path: Path, coco_dir: Path, models_dir: Path) -> None:
+    """``send_size: detector`` (the default) between real processes: once the edge's status says its
+    detector takes 416 x 416 (PicoDet-S stretches), the robot sends its 848 x 480 frames at that
+    size, 0.52 MB instead of 1.22 MB, and the boxes that come back are in the camera's pixels and
+    the ones the same model finds in the whole frame."""
+    from zoffload.detect.detector import Detector
+    from zoffload.sources.images import CocoClipSource
+
+    cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", encoding="bgr8", max_frames=100)
+    with client(free_port) as s:
+        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
+        try:
+            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+            assert robot.wait(120) == 0, robot.text()
+        finally:
+            edge.sigint()
+    run = tmp_path / "robot"
+    m = json.loads((run / "vision_metrics.json").read_text())
+    assert m["balanced"] and m["send_size"] == "detector", m["balance"]
+    done = [f for f in _frames(run) if f["status"] == "edge_done"]
+    assert len(done) >= 50, m["balance"]
+    sizes = [f["sent_size"] for f in done]
+    assert set(sizes) <= {"848x480", "416x416"} and sizes[-1] == "416x416", sizes
+    assert sizes.index("416x416") <= 40, sizes  # the edge's status comes once a second
+    shrunk = [f for f in done if f["sent_size"] == "416x416"]
+    assert all(float(f["bytes"]) < 416 * 416 * 3 + 1000 for f in shrunk)
+    dets = np.load(run / "detections.npz")
+    starts = np.concatenate([[0], np.cumsum(dets["counts"])])
+    at = {int(q): i for i, q in enumerate(dets["seqs"])}
+    model, clips = Detector("picodet-s", threads=1), CocoClipSource(coco_dir)
+    compared = 0
+    for f in shrunk[:: max(1, len(shrunk) // 8)]:
+        whole = model.detect(clips.read(int(f["index"])).image).of_class(0)
+        got = slice(starts[at[int(f["seq"])]], starts[at[int(f["seq"])] + 1]) if int(f["seq"]) in at else slice(0, 0)
+        boxes = dets["boxes"][got]
+        assert len(boxes) == len(whole.boxes), f
+        np.testing.assert_allclose(np.sort(boxes, axis=0), np.sort(whole.boxes, axis=0), atol=0.5)
+        compared += len(boxes)
+    assert compared >= 3  # persons were found and compared, in camera pixels (x up to 848)
 
 
 def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,

@@ -97,6 +97,9 @@ def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
                    f"kept, so the same command resumes (default {3 if sweep else 1})")
     p.add_argument("--encoding", choices=["bgr8", "jpeg", "auto"], default="bgr8",
                    help="frame encoding (default bgr8; auto: chosen per frame by the link)")
+    p.add_argument("--send-size", choices=["camera", "detector"], default="camera",
+                   help="frames to the edge at the camera's size (default: the thesis' protocol) or shrunk "
+                   "to the edge detector's input (detector: the daemon's default; rows S@ENC+shrunk)")
     p.add_argument("--edge-threads", type=int, default=1,
                    help="inference threads of the edge's detector (default 1: robot and edge share this "
                    "machine, and an edge on every core is slowed by whatever the robot runs)")
@@ -106,7 +109,7 @@ def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
 
 def _detect_kw(a: argparse.Namespace) -> dict[str, Any]:
     return {"images": a.images, "max_frames": a.max_frames, "encoding": a.encoding, "seed": a.seed,
-            "edge_threads": a.edge_threads}
+            "edge_threads": a.edge_threads, "send_size": a.send_size}
 
 
 def _run_detect(a: argparse.Namespace) -> int:

@@ -153,6 +153,22 @@ def decode_yolox(out: np.ndarray, size: int | tuple[int, int], strides: tuple[in
     return boxes, score[keep], best[keep]
 
 
+def shrink_size(width: int, height: int, input_hw: tuple[int, int], stretch: bool) -> tuple[int, int]:
+    """The (width, height) a ``width`` x ``height`` frame can be shrunk to before it travels to a
+    detector whose network input is ``input_hw`` (height, width), losing nothing the network sees:
+    the size ``Detector.preprocess`` resizes it to (stretched to the input, or letterboxed at the
+    one scale that fits), so the edge's own resize of the shrunk frame is the identity and the
+    network gets the same pixels. Never larger than the frame in either direction (a side already
+    below the input stays as it is)."""
+    net_h, net_w = input_hw
+    if stretch:
+        return min(width, net_w), min(height, net_h)
+    r = min(net_h / height, net_w / width)
+    if r >= 1.0:
+        return width, height
+    return min(width, net_w, int(round(width * r))), min(height, net_h, int(round(height * r)))
+
+
 def input_size(name: str, shape: list[Any], elem_type: str) -> tuple[int, int]:
     """The (height, width) of a detector input ``1x3xHxW`` float, or a ``ModelError`` saying why
     the graph's input is not one (a dynamic size, channels last, another element type)."""
@@ -237,6 +253,11 @@ class Detector:
     def name(self) -> str:
         return self.spec.name
 
+    @property
+    def stretch(self) -> bool:
+        """Whether ``preprocess`` stretches a frame to the input (else it letterboxes it)."""
+        return self.spec.name == "picodet-s"  # PaddleDetection: keep_ratio False
+
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Network input and the affine map back to source pixels: ``src = (net - offset) * scale``
         as a (2, 2) array [[offset_x, offset_y], [scale_x, scale_y]]."""
@@ -246,7 +267,7 @@ class Detector:
             raise ValueError(f"expected an HxWx3 uint8 BGR image, got {bgr.shape} {bgr.dtype}")
         net_h, net_w = self.input_hw
         h, w = bgr.shape[:2]
-        if self.spec.name == "picodet-s":  # PaddleDetection: stretched, keep_ratio False
+        if self.stretch:
             img = cv2.resize(bgr, (net_w, net_h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
             img = (img[:, :, ::-1] - _PICODET_MEAN) / _PICODET_STD
             back = np.array([[0.0, 0.0], [w / net_w, h / net_h]], np.float32)

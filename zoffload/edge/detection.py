@@ -119,6 +119,17 @@ def decode_image(frame: wire.Frame, limits: wire.Limits = wire.DEFAULT_LIMITS) -
     return img
 
 
+def to_camera(det: Detections, frame: wire.Frame) -> Detections:
+    """``det`` (in the frame's pixels) in the camera's: scaled up when the robot shrank the frame
+    to this edge's detector input on the way (``Frame.camera_size``)."""
+    cam_w, cam_h = frame.camera_size()
+    if (cam_w, cam_h) == (frame.width, frame.height) or not len(det):
+        return det
+    scale = np.array([cam_w / frame.width, cam_h / frame.height] * 2, np.float32)
+    boxes = np.clip(det.boxes * scale, 0, np.array([cam_w, cam_h, cam_w, cam_h], np.float32))
+    return Detections(boxes.astype(np.float32), det.scores, det.classes)
+
+
 def frame_edge(data: bytes | memoryview) -> str | None:
     """The ``edge`` field of an encoded frame, read without decoding the rest (``wire.peek_fields``:
     the pixels are stepped over, never built); None when the field is absent (a version-1 sender),
@@ -279,7 +290,7 @@ class DetectorService:
             self._busy_since = start
         try:
             img = decode_image(p.frame, self.limits)
-            det = self.detector.detect(img)
+            det = to_camera(self.detector.detect(img), p.frame)
         except Exception as exc:  # a bad frame is answered and counted, the service carries on
             self._served("errors", start)
             log.warning("robot %s frame %d: %s", p.frame.robot, p.frame.seq, exc)
@@ -377,6 +388,10 @@ class DetectorService:
         drops = self.drops.snapshot()
         values.update({f"detector.drop.{k}": float(v) for k, v in drops.items()})
         values["detector.drops"] = float(sum(drops.values()))
+        # What frames can be shrunk to on the way here (robot/camera.py reads it; detect/detector.py)
+        net_h, net_w = self.detector.input_hw
+        values.update({"detector.input_w": float(net_w), "detector.input_h": float(net_h),
+                       "detector.stretch": float(self.detector.stretch)})
         if self.infer_times:
             values["detector.infer_ms"] = float(np.mean(self.infer_times) * 1e3)
         return values

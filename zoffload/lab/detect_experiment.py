@@ -47,6 +47,7 @@ SWEEP_STRATEGIES = ["robot", *[f"ratio:{r / 10:g}" for r in range(1, 10)], "edge
 SWEEP_TRACES = ["none", "detect-capped", "wifi-locations", "mmwave-blockage"]
 SWEEP_QUOTAS = [0.25, 1.0]  # robot cores: the thesis' weak robot, and one full core
 SWEEP_IMAGES = "coco-clips@holdout"
+SHRUNK = "+shrunk"  # label suffix of runs whose frames were shrunk to the edge detector's input
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,9 @@ class DetectExperiment:
     max_frames: int | None = 750  # 30 s at 25 FPS: 15 clips; None: every frame of the source
     cpu_quota: float | None = 0.25
     encoding: str = "bgr8"
+    # Frames to the edge at the camera's size (the thesis' protocol), or "detector": shrunk to the
+    # edge detector's input on the way (the daemon's default; labelled ``S@ENC+shrunk``)
+    send_size: str = "camera"
     edge_model: str = "picodet-s"
     # One inference thread on the edge: robot and edge share this 2-core machine, and an edge on
     # both cores is slowed by whatever the robot runs (measured: 47 -> 71 ms per frame while the
@@ -93,6 +97,7 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
                                                   threads=exp.edge_threads))
     perception = PerceptionSettings(strategy=exp.strategy, max_frames=max_frames, cpu_quota=exp.cpu_quota,
                                     encoding=exp.encoding, local_model=exp.local_model,  # type: ignore[arg-type]
+                                    send_size=exp.send_size,  # type: ignore[arg-type]
                                     preview_period=0, **exp.extra)
     robot = RobotSettings(scans="none", images=exp.images, out_dir=str(out), wait_edge=30,
                           perception=perception)
@@ -111,10 +116,10 @@ def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     if not metrics_path.exists():
         return {"kind": "detect", "strategy": exp.strategy, "trace": exp.trace, "error": "no robot results"}
     m = json.loads(metrics_path.read_text())
-    label = exp.strategy if exp.encoding == "bgr8" else f"{exp.strategy}@{exp.encoding}"
+    label = run_label(exp.strategy, exp.encoding, exp.send_size)
     row: dict[str, Any] = {"kind": "detect", "strategy": label, "trace": exp.trace,
-                           "encoding": exp.encoding, "cpu_quota": exp.cpu_quota, "images": exp.images,
-                           "max_frames": exp.max_frames, "seed": exp.seed}
+                           "encoding": exp.encoding, "send_size": exp.send_size, "cpu_quota": exp.cpu_quota,
+                           "images": exp.images, "max_frames": exp.max_frames, "seed": exp.seed}
     if isinstance(source, CocoClipSource):
         row.update(detection_metrics(out, source.boxes, m["balance"]["frames_in"]))
     for k in ("processed_pct", "offloaded_pct", "robot_rtt_ms", "edge_rtt_ms", "local_infer_ms",
@@ -125,6 +130,14 @@ def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     if bal.get("frames_in"):
         row["skipped_pct"] = 100.0 * bal.get("skipped", 0) / bal["frames_in"]
     return row
+
+
+def run_label(strategy: str, encoding: str, send_size: str = "camera") -> str:
+    """``S`` (raw frames), ``S@jpeg``, ``S@auto``; ``+shrunk`` when frames were shrunk to the edge
+    detector's input (``S@bgr8+shrunk`` for raw ones): the report's row names."""
+    if send_size == "detector":
+        return f"{strategy}@{encoding}{SHRUNK}"
+    return strategy if encoding == "bgr8" else f"{strategy}@{encoding}"
 
 
 def summary_line(row: dict[str, Any]) -> str:
@@ -171,6 +184,8 @@ def sweep_runs(out: Path, traces: Sequence[str], strategies: Sequence[str], quot
                 for spec in strategies:
                     strategy, _, encoding = spec.partition("@")
                     name = spec.replace(":", "_").replace("@", "_")
+                    if kw.get("send_size") == "detector":
+                        name += "_shrunk"
                     folder = out / f"q{quota or 0:g}" / Path(trace).stem / name / f"run{i}"
                     args = dict(kw, encoding=encoding or kw.get("encoding", "bgr8"), cpu_quota=quota)
                     runs.append(DetectExperiment(trace=trace, strategy=strategy, out=str(folder), **args))

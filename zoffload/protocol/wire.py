@@ -12,9 +12,13 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build sends version 2 and reads 1 and 2. Version 2 only added fields with defaults
-(the assignment epoch and edge, deliberately skipped scans, per-point times) and
-messages (checkpoint, attach, attach reply), so a version-1 sender is still understood.
+Versions: this build reads 1, 2 and 3. Version 2 only added fields with defaults (the assignment
+epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
+attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
+(a frame shrunk to the edge detector's input). A message is sent as version 3 only when it
+carries a version-3 field away from its default, else as version 2 without those fields: a
+version-2 build reads everything this one sends it unless it announced a detector input, which
+only version-3 builds do (robot/camera.py).
 """
 
 from __future__ import annotations
@@ -28,8 +32,8 @@ from typing import Any, ClassVar, TypeVar, cast, overload
 import msgpack
 import numpy as np
 
-VERSION = 2
-READS = (1, 2)
+VERSION = 3  # the newest this build writes (see ``encode``: the lowest that carries the message)
+READS = (1, 2, 3)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
 RIGID_TOL = 1e-6  # a pose's rotation may be this far from orthonormal (float noise; consumers re-project)
@@ -121,8 +125,10 @@ def _array(spec: ArraySpec, optional: bool = False) -> Any:
 
 
 def _num(default: Any = dataclasses.MISSING, lo: float = -math.inf, hi: float = math.inf,
-         nan: bool = False, bounds: Num | None = None) -> Any:
-    return field(default=default, metadata={"num": bounds or Num(lo, hi, nan)})
+         nan: bool = False, bounds: Num | None = None, since: int = 1) -> Any:
+    """A number field; one added in a codec version above 2 (``since``) is left out of a message
+    where it holds its default, so the message still goes as version 2."""
+    return field(default=default, metadata={"num": bounds or Num(lo, hi, nan), "since": since})
 
 
 def _text(default: Any = dataclasses.MISSING, choices: tuple[str, ...] | None = None, max_len: int = 1000,
@@ -238,6 +244,10 @@ class Frame(Message):
     data: np.ndarray = _array(ArraySpec("|u1", (-1,)))
     # Version 2
     edge: str = _text("", max_len=ID_MAX)  # the edge asked to detect it ("": any edge that hears it)
+    # Version 3: the camera's size when the frame was shrunk on the way (0: not shrunk). The edge
+    # answers with boxes in the camera's pixels, scaled from the frame's.
+    camera_width: int = _num(0, lo=0, hi=65_535, since=3)
+    camera_height: int = _num(0, lo=0, hi=65_535, since=3)
 
     def check_size(self, limits: Limits = DEFAULT_LIMITS) -> None:
         """``WireError`` unless the declared size is within the pixel cap and, for raw frames,
@@ -247,11 +257,18 @@ class Frame(Message):
         if self.encoding == "bgr8" and self.data.size != self.width * self.height * 3:
             raise WireError(f"bgr8 frame of {self.data.size} bytes, {self.width}x{self.height}x3 = "
                             f"{self.width * self.height * 3} expected")
+        if (self.camera_width == 0) != (self.camera_height == 0):
+            raise WireError(f"camera size {self.camera_width}x{self.camera_height}: both or neither")
+
+    def camera_size(self) -> tuple[int, int]:
+        """(width, height) of the camera's frame: the boxes' pixels in the edge's answer."""
+        return (self.camera_width, self.camera_height) if self.camera_width else (self.width, self.height)
 
 
 @dataclass(frozen=True)
 class Detections(Message):
-    """The edge detector's answer to one frame; boxes in the frame's pixels (x1, y1, x2, y2)."""
+    """The edge detector's answer to one frame; boxes (x1, y1, x2, y2) in the camera's pixels (the
+    frame's, scaled up to its ``camera_size`` when it was shrunk on the way)."""
 
     TYPE: ClassVar[str] = "detections"
     robot: str = _text(ident=True)
@@ -433,9 +450,14 @@ def _dec_array(name: str, obj: Any, spec: ArraySpec, limits: Limits) -> np.ndarr
 
 def encode(msg: Message) -> bytes:
     """Serialise a message to bytes (pass these to ``put()``)."""
-    out: dict[str, Any] = {"v": VERSION, "t": msg.TYPE}
+    out: dict[str, Any] = {"v": 2, "t": msg.TYPE}
     for f in dataclasses.fields(msg):  # type: ignore[arg-type]
         value = getattr(msg, f.name)
+        since = f.metadata.get("since", 1)
+        if since > 2:
+            if value == f.default:
+                continue  # a version-2 reader would refuse the field: not sent at its default
+            out["v"] = max(out["v"], since)
         spec = f.metadata.get("array")
         if spec is not None and value is None and f.metadata.get("optional"):
             continue

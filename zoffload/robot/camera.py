@@ -88,6 +88,7 @@ class CameraOptions:
     replay: str = "once"  # a recorded source: once, loop or pingpong
     encoding: str = RAW  # bgr8, jpeg, or auto: chosen per frame (robot/encoding.py)
     jpeg_quality: int = 80
+    send_size: str = "detector"  # frames to the edge shrunk to its detector's input, or "camera": whole
     wait_edge: float = 5.0  # seconds to wait for the edge's subscriber to match at start
     cpu_quota: float | None = None  # reported in the metrics (applied by the server)
     quota_mode: str | None = None
@@ -270,12 +271,19 @@ class CameraOffloader:
                     del self._edge_images[next(iter(self._edge_images))]
             self._send_cond.notify()
 
-    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "", encoding: str = RAW) -> bytes:
+    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "", encoding: str = RAW,
+                size: tuple[int, int] | None = None) -> bytes:
+        """The frame's message: shrunk to ``size`` (width, height) first when that is smaller (with
+        the edge detector's own interpolation, so its resize of what arrives is the identity)."""
+        import cv2
+
         img = frame.image
+        cam_h, cam_w = img.shape[:2]
+        shrunk = size is not None and size != (cam_w, cam_h)
+        if shrunk:
+            img = cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
         h, w = img.shape[:2]
         if encoding == JPEG:
-            import cv2
-
             ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.opts.jpeg_quality])
             if not ok:
                 raise ValueError("JPEG encoding failed")
@@ -283,7 +291,9 @@ class CameraOffloader:
         else:
             data = np.ascontiguousarray(img).reshape(-1)
         return wire.encode(wire.Frame(robot=self.opts.robot_id, seq=seq, send_stamp=now, capture_stamp=now,
-                                      encoding=encoding, width=w, height=h, data=data, edge=edge))
+                                      encoding=encoding, width=w, height=h, data=data, edge=edge,
+                                      camera_width=cam_w if shrunk else 0,
+                                      camera_height=cam_h if shrunk else 0))
 
     def _sender(self) -> None:
         """Encodes and puts edge frames one at a time. The publisher blocks while the link is busy
@@ -298,9 +308,11 @@ class CameraOffloader:
                     continue  # already booked (lost when the edge went)
                 edge = self.book.edge_of(reading.seq)
                 encoding, _ = self.book.encoding_for(reading.seq, time.time())
+                h, w = reading.frame.image.shape[:2]
+                size = self.choice.send_size(edge, w, h) if self.opts.send_size == "detector" else (w, h)
             encode_start = time.time()
             try:
-                data = self._encode(reading.frame, reading.seq, encode_start, edge, encoding)
+                data = self._encode(reading.frame, reading.seq, encode_start, edge, encoding, size)
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
                     self.book.send_failed(reading.seq, time.time())
@@ -310,7 +322,7 @@ class CameraOffloader:
             with self._lock:
                 rec = self.book.records.get(reading.seq)
                 if rec is not None:
-                    rec.update(bytes=len(data), encode_ms=encode_ms)
+                    rec.update(bytes=len(data), encode_ms=encode_ms, sent_size=f"{size[0]}x{size[1]}")
                 self.bytes_sent += len(data)
             put_start = time.time()
             try:
@@ -431,6 +443,7 @@ class CameraOffloader:
             slow = list(self.slow_puts)
         return {"robot": self.opts.robot_id, "source": self.source.name, "strategy": self.strategy.name,
                 "local_model": self.local.name, "encoding": self.opts.encoding,
+                "send_size": self.opts.send_size,
                 "cpu_quota": self.opts.cpu_quota, "cpu_quota_applied": self.opts.quota_mode,
                 "power_available": RaplMonitor().available, "edge_switches": switches,
                 "slow_put_spans": [{"seq": q, "start": a, "end": b} for q, a, b in slow], **summary}
@@ -465,7 +478,8 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
                           probe_period=p.probe_period, resume_after=p.resume_after)
     options = CameraOptions(robot_id=settings.robot_id, fps=p.fps or source.rate_hz, max_frames=p.max_frames,
                             replay=p.replay,
-                            encoding=p.encoding, jpeg_quality=p.jpeg_quality, wait_edge=settings.wait_edge,
+                            encoding=p.encoding, jpeg_quality=p.jpeg_quality, send_size=p.send_size,
+                            wait_edge=settings.wait_edge,
                             cpu_quota=p.cpu_quota, quota_mode=quota_mode, preview_period=p.preview_period,
                             out_dir=Path(settings.out_dir) if settings.out_dir else None)
     return CameraOffloader(source, detector, strategy, rules, Keys(settings.namespace), options, stop)

@@ -2,8 +2,10 @@
 
 Pure (no Zenoh, no clock: ``now`` is passed in), tested directly. The camera pipeline feeds it the
 edges' liveliness (robot/presence.py) and their 1 Hz status values: ``detector.free`` (the share of
-the last few seconds the edge's detector thread was idle, edge/detection.py) and ``draining``
-(1 while the edge leaves, from the fleet protocol).
+the last few seconds the edge's detector thread was idle, edge/detection.py), ``draining``
+(1 while the edge leaves, from the fleet protocol) and the detector's network input
+(``detector.input_w``, ``detector.input_h``, ``detector.stretch``): what a frame can be shrunk to
+on its way there without changing what the network sees (``send_size``).
 
 Frames are stateless work, so unlike the mapping assignment (robot/assign.py) there is no attach:
 the robot names the edge in each frame (``Frame.edge``) and only that edge answers it. The choice
@@ -21,15 +23,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from zoffload.detect.detector import shrink_size
 from zoffload.robot.assign import pair_uniform
 
 FREE, DRAINING = "detector.free", "draining"
+INPUT_W, INPUT_H, STRETCH = "detector.input_w", "detector.input_h", "detector.stretch"
+INPUT_SIDES = (32, 8192)  # a network input side outside these is not believed (the frame stays whole)
 
 
 @dataclass
 class DetectorLoad:
     free: float = 1.0  # idle share of the edge's detector; 1 until the edge says otherwise
     draining: bool = False
+    input_hw: tuple[int, int] | None = None  # its detector's network input, once the edge says it
+    stretch: bool = False  # whether that detector stretches a frame to its input (else letterbox)
+
+
+def _side(value: float | None) -> int | None:
+    if value is None or not math.isfinite(value) or value != int(value):
+        return None
+    return int(value) if INPUT_SIDES[0] <= value <= INPUT_SIDES[1] else None
 
 
 class EdgeChoice:
@@ -56,6 +69,18 @@ class EdgeChoice:
         if free is not None and math.isfinite(free):
             load.free = min(max(float(free), 0.0), 1.0)
         load.draining = values.get(DRAINING, 0.0) == 1.0
+        w, h = _side(values.get(INPUT_W)), _side(values.get(INPUT_H))
+        if w is not None and h is not None:
+            load.input_hw, load.stretch = (h, w), values.get(STRETCH, 0.0) == 1.0
+
+    def send_size(self, edge: str, width: int, height: int) -> tuple[int, int]:
+        """The size to send a ``width`` x ``height`` frame to ``edge`` at: shrunk to what its
+        detector's network takes (detect/detector.py ``shrink_size``) once the edge has said what
+        that is; whole until then, and for an edge that is gone or not named ("")."""
+        load = self.edges.get(edge)
+        if load is None or load.input_hw is None:
+            return width, height
+        return shrink_size(width, height, load.input_hw, load.stretch)
 
     # The choice
     def full(self, edge: str) -> bool:

@@ -226,6 +226,10 @@ class PerceptionSettings(_Strict):
         description="frames to the edge: bgr8 (raw), jpeg, or auto (chosen per frame by the link)",
     )
     jpeg_quality: int = Field(default=80, ge=1, le=100, description="JPEG quality of frames sent as jpeg")
+    send_size: Literal["detector", "camera"] = Field(
+        default="detector",
+        description="frames to the edge shrunk to its detector's input (as it says), or at the camera's size",
+    )
     cpu_max: float = Field(
         default=90.0, gt=0, description="the rule's CPU bound: process %, one core = 100 (above it: edge)"
     )

@@ -9,7 +9,7 @@ import pytest
 
 from tests.core.detect.onnx_models import resized, synthetic
 from zoffload.detect import models
-from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms
+from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms, shrink_size
 from zoffload.detect.models import ModelError, resolve
 from zoffload.lab.eval.detection import person_ap50
 
@@ -219,3 +219,63 @@ def test_other_size_exports_of_the_families_load_and_find_the_people(tmp_path: P
     det = Detector(name, path=str(model))
     assert det.input_hw == (size, size)
     assert low <= person_ap50(det, coco_dir) <= 0.9
+
+
+# Frames shrunk on the robot to what the edge's network takes (detect/detector.py ``shrink_size``)
+
+def _shrunk(img: np.ndarray, det: Detector) -> np.ndarray:
+    import cv2
+
+    size = shrink_size(img.shape[1], img.shape[0], det.input_hw, det.stretch)
+    return img if size == (img.shape[1], img.shape[0]) else cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
+
+
+@pytest.mark.parametrize("name", ["nanodet-m", "picodet-s", "yolox-nano"])
+@pytest.mark.parametrize("frame_hw", [(480, 848), (848, 480), (376, 1408), (200, 300), (10, 1000)])
+def test_a_frame_shrunk_to_the_network_input_gives_the_network_the_same_pixels(
+        tmp_path: Path, name: str, frame_hw: tuple[int, int]) -> None:
+    hw = (256, 320)  # non-square: width and height must not be swapped
+    if name == "yolox-nano":
+        path = synthetic(tmp_path / "y.onnx", [1, 3, *hw], {"output": np.zeros((1, 1680, 85), np.float32)})
+    else:
+        path = synthetic(tmp_path / "m.onnx", [1, 3, *hw], _gfl_outputs(hw, [8, 16, 32], (16, 3, 7), [2, 1, 3, 2]))
+    det = Detector(name, path=str(path))
+    img = np.random.default_rng(sum(frame_hw)).integers(0, 256, (*frame_hw, 3), dtype=np.uint8)
+    small = _shrunk(img, det)
+    assert small.shape[0] <= img.shape[0] and small.shape[1] <= img.shape[1]
+    if img.shape[0] > hw[0] and img.shape[1] > hw[1]:
+        assert small.size < img.size  # a frame larger than the input both ways travels smaller
+    net_full, _ = det.preprocess(img)
+    net_small, back = det.preprocess(small)
+    if det.stretch and (img.shape[0] < hw[0]) != (img.shape[1] < hw[1]):
+        # stretched one way, shrunk the other: OpenCV's fixed-point resize in two steps instead of
+        # one rounds a few pixels to the next grey level (1 level = 1/57 after normalising)
+        assert np.abs(net_small - net_full).max() <= 1.01 / 57.0
+    else:
+        np.testing.assert_array_equal(net_small, net_full)
+    if small.shape[:2] == hw or (not det.stretch and small.shape != img.shape):
+        assert back[1].tolist() == [1.0, 1.0]  # the edge's own resize of what arrives is the identity
+
+
+@pytest.mark.realdata
+def test_the_real_edge_model_finds_the_same_people_in_a_shrunk_clip_frame(models_dir: Path, coco_dir: Path) -> None:
+    from zoffload.edge.detection import to_camera
+    from zoffload.protocol import wire
+    from zoffload.sources.images import CocoClipSource
+
+    det = Detector("picodet-s")
+    clips = CocoClipSource(coco_dir)
+    found = 0
+    for index in range(0, 250, 25):
+        img = clips.read(index).image
+        small = _shrunk(img, det)
+        assert small.shape == (*det.input_hw, 3)  # PicoDet stretches: 848x480 travels as 416x416
+        frame = wire.Frame(robot="r", seq=index, send_stamp=0.0, capture_stamp=0.0, encoding="bgr8",
+                           width=small.shape[1], height=small.shape[0], data=small.reshape(-1),
+                           camera_width=img.shape[1], camera_height=img.shape[0])
+        full, back = det.detect(img).of_class(0), to_camera(det.detect(small), frame).of_class(0)
+        np.testing.assert_array_equal(back.scores, full.scores)
+        # the same network output; only the pixel scale differs: 480/416 rounding is exact here
+        np.testing.assert_allclose(back.boxes, full.boxes, atol=0.05)
+        found += len(full.scores)
+    assert found >= 5

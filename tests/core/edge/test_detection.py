@@ -93,3 +93,19 @@ def test_a_small_jpeg_claiming_a_huge_image_never_reaches_the_decoder(
         check_frame(frame(encoding="jpeg", width=4000, height=3000, data=np.frombuffer(mid, np.uint8)),
                     wire.Limits(max_pixels=3840 * 2160))
     assert decoded == []
+
+
+def test_boxes_of_a_shrunk_frame_come_back_in_the_camera_pixels() -> None:
+    from zoffload.detect.detector import Detections
+    from zoffload.edge.detection import to_camera
+
+    det = Detections(np.array([[10, 20, 208, 416], [0, 0, 416, 416]], np.float32),
+                     np.array([0.9, 0.5], np.float32), np.array([0, 0], np.int32))
+    shrunk = frame(width=416, height=416, data=np.zeros(416 * 416 * 3, np.uint8), camera_width=848,
+                   camera_height=480)
+    back = to_camera(det, shrunk)
+    np.testing.assert_allclose(back.boxes, [[10 * 848 / 416, 20 * 480 / 416, 424, 480], [0, 0, 848, 480]],
+                               rtol=1e-6)
+    assert back.scores.tolist() == det.scores.tolist()
+    whole = frame(width=416, height=416, data=np.zeros(416 * 416 * 3, np.uint8))
+    assert to_camera(det, whole) is det  # not shrunk: the frame's pixels are the camera's

@@ -32,6 +32,8 @@ def frame(robot: str = "r1", seq: int = 0, edge: str = "") -> wire.Frame:
 class StandInDetector:
     name = "stand-in"
     last_infer_time = 0.001
+    input_hw = (416, 416)  # what the edge announces frames can be shrunk to
+    stretch = True
 
     def detect(self, bgr: np.ndarray) -> Detections:
         return Detections(np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32))

@@ -3,6 +3,7 @@ checked before anything is sized from it, and no forged length makes it allocate
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import resource
 import time
@@ -138,7 +139,29 @@ def test_version_1_messages_are_still_read() -> None:
     ack = wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.ScanAck)
     assert ack.epoch == 0 and ack.edge == ""
     with pytest.raises(wire.WireError, match="codec version"):
-        wire.decode(tamper("ack", v=3))
+        wire.decode(tamper("ack", v=4))
+
+
+def test_a_frame_goes_as_version_2_unless_it_was_shrunk() -> None:
+    """A version-2 reader (which refuses unknown fields and version 3) still reads every frame a
+    robot sends before an edge has said what its detector takes; a shrunk frame is version 3."""
+    whole = wire.Frame(robot="r1", seq=1, send_stamp=1.0, capture_stamp=1.0, encoding="bgr8", width=2,
+                       height=1, data=np.zeros(6, np.uint8))
+    obj = msgpack.unpackb(wire.encode(whole), raw=False)
+    assert obj["v"] == 2 and "camera_width" not in obj and "camera_height" not in obj
+    shrunk = dataclasses.replace(whole, camera_width=848, camera_height=480)
+    obj = msgpack.unpackb(wire.encode(shrunk), raw=False)
+    assert obj["v"] == 3 and (obj["camera_width"], obj["camera_height"]) == (848, 480)
+    back = wire.decode(wire.encode(shrunk), expect=wire.Frame)
+    assert back.camera_size() == (848, 480) and whole.camera_size() == (2, 1)
+    one_side = msgpack.unpackb(wire.encode(shrunk), raw=False)
+    del one_side["camera_height"]
+    with pytest.raises(wire.WireError, match="both or neither"):
+        wire.decode(msgpack.packb(one_side, use_bin_type=True), expect=wire.Frame).check_size()
+    for bad in ({"camera_width": 70_000}, {"camera_width": -1}, {"camera_height": 8.5}):
+        obj = {**msgpack.unpackb(wire.encode(shrunk), raw=False), **bad}
+        with pytest.raises(wire.WireError, match="camera_"):
+            wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Frame)
 
 
 def test_times_survive_the_u16_coding() -> None:

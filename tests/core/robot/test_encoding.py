@@ -33,9 +33,18 @@ def test_auto_starts_with_jpeg_and_takes_raw_frames_when_a_trial_finds_the_link_
     assert c.pick(0.0) == (JPEG, False)  # nothing known yet: JPEG (a raw frame may take seconds)
     jpeg_answer(c, 0.0)
     assert c.pick(0.5) == (JPEG, False)  # the first trial waits first_trial after the first answer
-    assert trial(c, 1.1, link=0.010)  # 10 ms of link for a raw frame, the detector takes 40
+    assert trial(c, 1.1, link=0.008)  # 8 ms of link for a raw frame, the detector takes 40
     assert c.current == RAW and c.pick(2.0) == (RAW, False)
     assert c.switches == 1 and c.summary()["events"][0]["to"] == RAW
+
+
+def test_a_trial_that_would_add_much_latency_keeps_jpeg_though_the_link_keeps_pace() -> None:
+    """25 ms of link per raw frame keeps pace with a detector at 40 ms, but adds 25 ms to every
+    frame's age: more than a quarter of the service time, so frames stay JPEG."""
+    c = EncodingChoice()
+    jpeg_answer(c, 0.0)
+    assert not trial(c, 1.1, link=0.025)
+    assert c.current == JPEG and c.next_trial > 1.1 + 2.0
 
 
 def test_a_slow_trial_keeps_jpeg_and_backs_off_to_one_trial_a_minute() -> None:
@@ -147,7 +156,7 @@ def test_the_book_hides_a_trials_size_from_the_dispatcher_and_resets_it_on_a_swi
     assert b.encoding_for(seq, t) == (RAW, True)
     b.records[seq].update(bytes=1_220_000, encode_ms=0.5)
     bytes_before = d.frame_bytes.value
-    b.edge_result(seq, "ok", t + 0.07, SERVICE, 0.0, *empty)  # 70 ms: 10 ms of link beyond a JPEG's
+    b.edge_result(seq, "ok", t + 0.065, SERVICE, 0.0, *empty)  # 65 ms: 5 ms of link beyond a JPEG's
     assert b.encodings.current == RAW and b.encodings.switches == 1
     assert not d.delivered.samples and math.isnan(d.frame_bytes.value) and bytes_before < 200_000
     assert b.records[seq]["status"] == "edge_done"  # the trial frame is a frame like the others

@@ -70,3 +70,26 @@ def test_a_frame_is_answered_only_by_the_edge_it_was_sent_to_and_lost_when_that_
     assert b.edge_result(2, "ok", 0.3, 0.02, 0.0, *NONE, edge="edge2") == "edge_done"
     assert b.per_edge == {"edge1": 1, "edge2": 2} and b.balanced()
     assert b.summary()["per_edge"] == {"edge1": 1, "edge2": 2}
+
+
+def test_frames_are_shrunk_for_an_edge_only_once_it_says_what_its_detector_takes() -> None:
+    choice = EdgeChoice("r1")
+    choice.present(frozenset({"e1", "e2"}))
+    assert choice.send_size("e1", 848, 480) == (848, 480)  # nothing said yet: whole
+    choice.status("e1", {"detector.free": 1.0, "detector.input_w": 416.0, "detector.input_h": 416.0,
+                         "detector.stretch": 1.0})
+    choice.status("e2", {"detector.input_w": 416.0, "detector.input_h": 416.0, "detector.stretch": 0.0})
+    assert choice.send_size("e1", 848, 480) == (416, 416)  # stretched to the input
+    assert choice.send_size("e2", 848, 480) == (416, 235)  # letterboxed at one scale
+    assert choice.send_size("e2", 320, 240) == (320, 240)  # never enlarged
+    assert choice.send_size("", 848, 480) == (848, 480) and choice.send_size("gone", 848, 480) == (848, 480)
+    # What is not a believable input size changes nothing (the last good one stays)
+    for bad in ({"detector.input_w": float("nan"), "detector.input_h": 416.0},
+                {"detector.input_w": 1e9, "detector.input_h": 416.0},
+                {"detector.input_w": 416.5, "detector.input_h": 416.0},
+                {"detector.input_w": 8.0, "detector.input_h": 8.0}, {"detector.input_w": 416.0}):
+        choice.status("e1", bad)
+        assert choice.send_size("e1", 848, 480) == (416, 416)
+    choice.present(frozenset({"e2"}))
+    choice.present(frozenset({"e1", "e2"}))  # back after going: it says again before frames shrink
+    assert choice.send_size("e1", 848, 480) == (848, 480)

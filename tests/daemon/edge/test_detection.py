@@ -27,6 +27,8 @@ class StandIn:
 
     name = "stand-in"
     last_infer_time = 0.001
+    input_hw = (416, 416)  # what the edge announces frames can be shrunk to
+    stretch = True
 
     def __init__(self) -> None:
         self.gate = threading.Event()

@@ -34,7 +34,8 @@ ROW_NAMES = {"robot": "Robot only", "edge": "Edge only", "thesis": "Dynamic (the
              "dynamic": "Dynamic (ours, before)", "dispatch": "**Dispatch (ours)**",
              "dynamic@jpeg": "Dynamic (ours, before) + JPEG", "dispatch@jpeg": "Dispatch (ours) + JPEG"}
 OURS = "dispatch"
-ENCODING_NAMES = {"jpeg": "JPEG", "auto": "encoding per frame"}
+ENCODING_NAMES = {"bgr8": "raw", "jpeg": "JPEG", "auto": "encoding per frame"}
+SHRUNK = "+shrunk"  # frames shrunk to the edge detector's input (lab/detect_experiment.py run_label)
 FIGURES = ["ap50_async", "ap50_sync", "robot_rtt_ms", "edge_rtt_ms", "processed_pct", "offloaded_pct",
            "skipped_pct", "cpu_process_pct", "power_w", "mbps_out", "mean_lateness_frames"]
 
@@ -76,9 +77,33 @@ def offload_ratio(strategy: str) -> float | None:
 def is_fixed(strategy: str, encoding: str = "bgr8") -> bool:
     """Robot only, a fixed ratio or edge only, with frames in ``encoding``: the baselines ours must
     beat (ours on raw frames against the raw ones, ours with JPEG frames against the JPEG ones;
-    ours choosing the encoding per frame, ``auto``, against both)."""
-    kinds = ("bgr8", "jpeg") if encoding == "auto" else (encoding,)
-    return offload_ratio(strategy) is not None and split(strategy)[1] in kinds
+    ours choosing the encoding per frame, ``auto``, against both). Frames shrunk to the edge
+    detector's input (``+shrunk``) only against fixed strategies whose frames were shrunk too."""
+    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    kinds: tuple[str, ...] = ("bgr8", "jpeg") if kind == "auto" else (kind,)
+    if shrunk:
+        kinds = tuple(k + SHRUNK for k in kinds)
+    base, got = split(strategy)
+    return offload_ratio(strategy) is not None and (got in kinds or base == "robot")  # robot only sends none
+
+
+def frames_name(encoding: str) -> str:
+    """How ours sent its frames and what it is set against, e.g. for ``jpeg+shrunk`` "JPEG frames,
+    shrunk to the edge's input, against the JPEG ones, shrunk"."""
+    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    name = {"bgr8": "raw frames, against the raw ones", "jpeg": "JPEG frames, against the JPEG ones",
+            "auto": "encoding per frame, against raw and JPEG ones"}.get(kind, kind)
+    if shrunk:
+        what, against = name.split(", ", 1) if ", " in name else (name, "")
+        return f"{what}, shrunk to the edge's input{', ' + against + ', shrunk' if against else ''}"
+    return name
+
+
+def _frames_order(row: dict[str, Any]) -> tuple[bool, int]:
+    encoding = split(row["strategy"])[1]
+    kinds = ["bgr8", "jpeg", "auto"]
+    kind = encoding.removesuffix(SHRUNK)
+    return encoding.endswith(SHRUNK), kinds.index(kind) if kind in kinds else len(kinds)
 
 
 def row_name(strategy: str) -> str:
@@ -86,6 +111,9 @@ def row_name(strategy: str) -> str:
         return ROW_NAMES[strategy]
     base, encoding = split(strategy)
     name = ROW_NAMES.get(base, base.replace("ratio:", "Ratio "))
+    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    if shrunk:
+        return f"{name} + {ENCODING_NAMES.get(kind, kind)}, shrunk"
     return name if encoding == "bgr8" else f"{name} + {ENCODING_NAMES.get(encoding, encoding)}"
 
 
@@ -153,8 +181,8 @@ def targets(rows: list[dict[str, Any]]) -> str:
              "| ours − edge only |",
              "|---|---|---|---|---|---|---|"]
     for (trace, quota), group in _cells(rows):
-        for encoding, ours_name in (("bgr8", OURS), ("jpeg", f"{OURS}@jpeg"), ("auto", f"{OURS}@auto")):
-            ours = next((r for r in group if r["strategy"] == ours_name), None)
+        for ours in sorted((r for r in group if split(r["strategy"])[0] == OURS), key=_frames_order):
+            encoding = split(ours["strategy"])[1]
             fixed = [r for r in group
                      if is_fixed(r["strategy"], encoding) and r.get("ap50_async") is not None]
             if ours is None or ours.get("ap50_async") is None or not fixed:
@@ -164,8 +192,7 @@ def targets(rows: list[dict[str, Any]]) -> str:
             edge = max(edges, key=lambda r: r["ap50_async"]) if edges else None
             name = row_name(best["strategy"]).replace("Ratio ", "ratio ")
             vs_edge = f"{ours['ap50_async'] - edge['ap50_async']:+.1f}" if edge else "–"
-            frames = {"bgr8": "", "jpeg": " (JPEG frames, against the JPEG ones)",
-                      "auto": " (encoding per frame, against raw and JPEG ones)"}[encoding]
+            frames = "" if encoding == "bgr8" else f" ({frames_name(encoding)})"
             lines.append(f"| {LINK_NAMES.get(trace, trace)}{frames} | {quota} "
                          f"| {_cell(ours, 'ap50_async', '.1f')} "
                          f"| {name}: {_cell(best, 'ap50_async', '.1f')} "
