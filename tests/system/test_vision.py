@@ -201,7 +201,8 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
         last = frames[-100:]
         assert sum(f["encoding"] == "bgr8" for f in last) >= 95, enc  # raw once the trial said so
-        assert float(trials[-1]["bytes"]) > 416 * 416 * 3  # a raw frame (shrunk to PicoDet's 416 x 416)
+        assert trials[-1]["sent_size"] == "416x416"  # shrunk to PicoDet's input once the edge said it
+        assert float(trials[-1]["bytes"]) > 416 * 416 * 3  # and raw
     else:
         assert enc["now"] == "jpeg" and enc["switches"] == 0, enc
         assert 2 <= len(trials) <= 4, [f["seq"] for f in trials]  # 12 s: backing off 1, 2, 4, 8 s
@@ -239,14 +240,21 @@ def test_frames_shrunk_to_the_edge_detector_input_get_the_boxes_of_the_whole_fra
     starts = np.concatenate([[0], np.cumsum(dets["counts"])])
     at = {int(q): i for i, q in enumerate(dets["seqs"])}
     model, clips = Detector("picodet-s", threads=1), CocoClipSource(coco_dir)
+
+    def unmatched(these: np.ndarray, those: np.ndarray) -> list[list[float]]:
+        return [b.tolist() for b in these if not len(those) or np.abs(those - b).max(axis=1).min() > 0.5]
+
     compared = 0
     for f in shrunk[:: max(1, len(shrunk) // 8)]:
         whole = model.detect(clips.read(int(f["index"])).image).of_class(0)
-        got = slice(starts[at[int(f["seq"])]], starts[at[int(f["seq"])] + 1]) if int(f["seq"]) in at else slice(0, 0)
-        boxes = dets["boxes"][got]
-        assert len(boxes) == len(whole.boxes), f
-        np.testing.assert_allclose(np.sort(boxes, axis=0), np.sort(whole.boxes, axis=0), atol=0.5)
-        compared += len(boxes)
+        i = at.get(int(f["seq"]))
+        got = dets["boxes"][starts[i]:starts[i + 1]] if i is not None else np.zeros((0, 4), np.float32)
+        # Every confident box of the whole frame came back within 0.5 px, and nothing else did but
+        # boxes at the confidence threshold (the edge's thread count may move a score across it)
+        sure = whole.boxes[whole.scores >= 0.3]
+        assert not unmatched(sure, got), (f, got, whole.boxes)
+        assert len(unmatched(got, whole.boxes)) <= 1, (f, got, whole.boxes)
+        compared += len(sure)
     assert compared >= 3  # persons were found and compared, in camera pixels (x up to 848)
 
 

@@ -163,10 +163,27 @@ def shrink_size(width: int, height: int, input_hw: tuple[int, int], stretch: boo
     net_h, net_w = input_hw
     if stretch:
         return min(width, net_w), min(height, net_h)
-    r = min(net_h / height, net_w / width)
-    if r >= 1.0:
+    if min(net_h / height, net_w / width) >= 1.0:
         return width, height
-    return min(width, net_w, int(round(width * r))), min(height, net_h, int(round(height * r)))
+    return letterbox_size(width, height, input_hw)
+
+
+def letterbox_size(width: int, height: int, input_hw: tuple[int, int]) -> tuple[int, int]:
+    """(width, height) of a frame letterboxed into ``input_hw`` (height, width) at the one scale
+    that fits (``Detector.preprocess`` and ``shrink_size`` both use it; never a side of 0)."""
+    net_h, net_w = input_hw
+    r = min(net_h / height, net_w / width)
+    return max(1, min(net_w, int(round(width * r)))), max(1, min(net_h, int(round(height * r))))
+
+
+def resize_to(bgr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``bgr`` at ``size`` (width, height) with the interpolation ``Detector.preprocess`` uses
+    (the robot shrinks frames with it, so the edge's resize of them is the identity)."""
+    import cv2
+
+    if size == (bgr.shape[1], bgr.shape[0]):
+        return bgr
+    return cv2.resize(bgr, size, interpolation=cv2.INTER_LINEAR)
 
 
 def input_size(name: str, shape: list[Any], elem_type: str) -> tuple[int, int]:
@@ -261,24 +278,23 @@ class Detector:
     def preprocess(self, bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Network input and the affine map back to source pixels: ``src = (net - offset) * scale``
         as a (2, 2) array [[offset_x, offset_y], [scale_x, scale_y]]."""
-        import cv2
 
         if bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
             raise ValueError(f"expected an HxWx3 uint8 BGR image, got {bgr.shape} {bgr.dtype}")
         net_h, net_w = self.input_hw
         h, w = bgr.shape[:2]
         if self.stretch:
-            img = cv2.resize(bgr, (net_w, net_h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+            img = resize_to(bgr, (net_w, net_h)).astype(np.float32)
             img = (img[:, :, ::-1] - _PICODET_MEAN) / _PICODET_STD
             back = np.array([[0.0, 0.0], [w / net_w, h / net_h]], np.float32)
             return np.ascontiguousarray(img.transpose(2, 0, 1)[None]), back
         # Letterbox: YOLOX top-left on grey 114; NanoDet centred on black (its keep_ratio resize)
         r = min(net_h / h, net_w / w)
-        nh, nw = min(net_h, int(round(h * r))), min(net_w, int(round(w * r)))
+        nw, nh = letterbox_size(w, h, self.input_hw)
         yolox = self.spec.decoder == "yolox"
         canvas = np.full((net_h, net_w, 3), 114 if yolox else 0, np.uint8)
         oy, ox = (0, 0) if yolox else ((net_h - nh) // 2, (net_w - nw) // 2)
-        canvas[oy:oy + nh, ox:ox + nw] = cv2.resize(bgr, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        canvas[oy:oy + nh, ox:ox + nw] = resize_to(bgr, (nw, nh))
         img = canvas.astype(np.float32)
         if not yolox:
             img = (img - _NANODET_MEAN) / _NANODET_STD

@@ -18,7 +18,8 @@ attach reply), so a version-1 sender is still understood. Version 3 added a fram
 (a frame shrunk to the edge detector's input). A message is sent as version 3 only when it
 carries a version-3 field away from its default, else as version 2 without those fields: a
 version-2 build reads everything this one sends it unless it announced a detector input, which
-only version-3 builds do (robot/camera.py).
+only version-3 builds do (robot/camera.py). Decoding is lenient about the label: a message is read
+by its fields (each checked), whatever version between 1 and 3 it says it is.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ from typing import Any, ClassVar, TypeVar, cast, overload
 import msgpack
 import numpy as np
 
-VERSION = 3  # the newest this build writes (see ``encode``: the lowest that carries the message)
+VERSION = 3  # the newest this build writes (``encode`` writes the lowest that carries the message)
+BASE_VERSION = 2  # what a message without version-3 fields goes as
 READS = (1, 2, 3)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -259,6 +261,9 @@ class Frame(Message):
                             f"{self.width * self.height * 3} expected")
         if (self.camera_width == 0) != (self.camera_height == 0):
             raise WireError(f"camera size {self.camera_width}x{self.camera_height}: both or neither")
+        if self.camera_width and (self.camera_width < self.width or self.camera_height < self.height):
+            raise WireError(f"camera size {self.camera_width}x{self.camera_height} below the frame's "
+                            f"{self.width}x{self.height} (a frame is only ever shrunk)")
 
     def camera_size(self) -> tuple[int, int]:
         """(width, height) of the camera's frame: the boxes' pixels in the edge's answer."""
@@ -450,7 +455,7 @@ def _dec_array(name: str, obj: Any, spec: ArraySpec, limits: Limits) -> np.ndarr
 
 def encode(msg: Message) -> bytes:
     """Serialise a message to bytes (pass these to ``put()``)."""
-    out: dict[str, Any] = {"v": 2, "t": msg.TYPE}
+    out: dict[str, Any] = {"v": BASE_VERSION, "t": msg.TYPE}
     for f in dataclasses.fields(msg):  # type: ignore[arg-type]
         value = getattr(msg, f.name)
         since = f.metadata.get("since", 1)

@@ -1,6 +1,7 @@
 """How each frame to the edge is encoded: raw (``bgr8``), JPEG, or ``auto`` (chosen per frame).
 
-A raw 848 x 480 frame is 1.2 MB, its JPEG ~0.1 MB; JPEG costs the robot its encoding (about 4 ms of
+A raw 848 x 480 frame is 1.2 MB whole (0.52 MB shrunk to PicoDet's 416 x 416), its JPEG ~50 kB
+(~28 kB); JPEG costs the robot its encoding (about 4 ms of
 a core per frame, a sixth of a quarter-core robot's budget at 25 FPS) and the edge its decoding.
 Which is better depends on the link: raw wins where the link carries raw frames as fast as the
 edge's detector takes them (on an unconstrained link, a quarter-core robot with raw frames scores
@@ -12,13 +13,16 @@ cap: 55.0 against 46.4; a Wi-Fi walk 52.4 against 22.9). ``auto`` measures which
   time per raw frame. When the median of the recent samples is above the edge's detector service
   time (``leave`` x: the link, not the detector, is the bottleneck) or a raw frame is lost, frames
   go as JPEG. (An encoding that fails, or an edge that refuses a frame, says nothing of the link:
-  only a trial frame lost so ends its trial.)
+  only a trial frame lost so ends its trial.) The gaps cannot see a link that slows to between the
+  trial's bound and the edge's pace (frames then queue at the edge, and the gaps show its service
+  time): raw frames stay until the link is the bottleneck or a frame is lost (a known gap).
 * **JPEG frames** do not show whether the link would carry raw ones (the edge's detector is then
   the bottleneck, and the gaps show its pace). So one frame now and then goes raw, a *trial*: its
   link time is its send-to-answer time less the edge's time, less its encoding, less the path's
   base latency (the shortest recent one of the JPEG frames, measured the same way). A trial within
   a quarter of the edge's service time switches to raw (a raw frame's link time adds to every
-  frame's latency, and asynchronous AP counts latency as well as pace); a slower one, and every switch back to JPEG, doubles
+  frame's latency, and asynchronous AP counts latency as well as pace); a slower one, and every
+  switch back to JPEG, doubles
   the wait before the next trial (``first_trial`` s up to ``max_wait``; back to twice
   ``first_trial`` when raw frames held for ``settled`` s), so a slow link pays one raw frame a
   minute at most and a link on the edge of the two does not flutter. No trial while the JPEG
@@ -126,7 +130,7 @@ class EncodingChoice:
             link = path - (base if math.isfinite(base) else 0.0)
             if self.current == JPEG and math.isfinite(limit) and link <= limit:
                 return self._switch(RAW, result, f"a raw frame took the link {1e3 * link:.0f} ms, the "
-                                                  f"edge's detector {1e3 * limit:.0f} ms")
+                                                  f"edge's detector {1e3 * self.edge_service.value:.0f} ms")
             self._back_off(result)
             return False
         if self.current == RAW and math.isfinite(link_time):

@@ -9,7 +9,7 @@ import pytest
 
 from tests.core.detect.onnx_models import resized, synthetic
 from zoffload.detect import models
-from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms, shrink_size
+from zoffload.detect.detector import Detector, decode_gfl, decode_yolox, nms, resize_to, shrink_size
 from zoffload.detect.models import ModelError, resolve
 from zoffload.lab.eval.detection import person_ap50
 
@@ -224,21 +224,20 @@ def test_other_size_exports_of_the_families_load_and_find_the_people(tmp_path: P
 # Frames shrunk on the robot to what the edge's network takes (detect/detector.py ``shrink_size``)
 
 def _shrunk(img: np.ndarray, det: Detector) -> np.ndarray:
-    import cv2
-
-    size = shrink_size(img.shape[1], img.shape[0], det.input_hw, det.stretch)
-    return img if size == (img.shape[1], img.shape[0]) else cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
+    """What the robot sends (robot/camera.py ``_encode``: the same two calls)."""
+    return resize_to(img, shrink_size(img.shape[1], img.shape[0], det.input_hw, det.stretch))
 
 
 @pytest.mark.parametrize("name", ["nanodet-m", "picodet-s", "yolox-nano"])
-@pytest.mark.parametrize("frame_hw", [(480, 848), (848, 480), (376, 1408), (200, 300), (10, 1000)])
+@pytest.mark.parametrize("frame_hw", [(480, 848), (848, 480), (376, 1408), (200, 300), (10, 1000), (1, 1000)])
 def test_a_frame_shrunk_to_the_network_input_gives_the_network_the_same_pixels(
         tmp_path: Path, name: str, frame_hw: tuple[int, int]) -> None:
     hw = (256, 320)  # non-square: width and height must not be swapped
     if name == "yolox-nano":
         path = synthetic(tmp_path / "y.onnx", [1, 3, *hw], {"output": np.zeros((1, 1680, 85), np.float32)})
     else:
-        path = synthetic(tmp_path / "m.onnx", [1, 3, *hw], _gfl_outputs(hw, [8, 16, 32], (16, 3, 7), [2, 1, 3, 2]))
+        outs = _gfl_outputs(hw, [8, 16, 32], (16, 3, 7), [2, 1, 3, 2])
+        path = synthetic(tmp_path / "m.onnx", [1, 3, *hw], outs)
     det = Detector(name, path=str(path))
     img = np.random.default_rng(sum(frame_hw)).integers(0, 256, (*frame_hw, 3), dtype=np.uint8)
     small = _shrunk(img, det)
@@ -258,7 +257,8 @@ def test_a_frame_shrunk_to_the_network_input_gives_the_network_the_same_pixels(
 
 
 @pytest.mark.realdata
-def test_the_real_edge_model_finds_the_same_people_in_a_shrunk_clip_frame(models_dir: Path, coco_dir: Path) -> None:
+def test_the_real_edge_model_finds_the_same_people_in_a_shrunk_clip_frame(models_dir: Path,
+                                                                         coco_dir: Path) -> None:
     from zoffload.edge.detection import to_camera
     from zoffload.protocol import wire
     from zoffload.sources.images import CocoClipSource

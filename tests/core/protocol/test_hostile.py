@@ -158,10 +158,26 @@ def test_a_frame_goes_as_version_2_unless_it_was_shrunk() -> None:
     del one_side["camera_height"]
     with pytest.raises(wire.WireError, match="both or neither"):
         wire.decode(msgpack.packb(one_side, use_bin_type=True), expect=wire.Frame).check_size()
+    below = {**msgpack.unpackb(wire.encode(shrunk), raw=False), "camera_width": 1}  # below the frame's 2
+    with pytest.raises(wire.WireError, match="only ever shrunk"):
+        wire.decode(msgpack.packb(below, use_bin_type=True), expect=wire.Frame).check_size()
     for bad in ({"camera_width": 70_000}, {"camera_width": -1}, {"camera_height": 8.5}):
         obj = {**msgpack.unpackb(wire.encode(shrunk), raw=False), **bad}
         with pytest.raises(wire.WireError, match="camera_"):
             wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Frame)
+
+
+def test_a_version_2_reader_reads_whole_frames_and_refuses_shrunk_ones(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    whole = wire.Frame(robot="r1", seq=1, send_stamp=1.0, capture_stamp=1.0, encoding="bgr8", width=2,
+                       height=1, data=np.zeros(6, np.uint8))
+    shrunk = dataclasses.replace(whole, camera_width=4, camera_height=2)
+    data_whole, data_shrunk = wire.encode(whole), wire.encode(shrunk)
+    monkeypatch.setattr(wire, "READS", (1, 2))  # an older build, as far as versions go
+    got = wire.decode(data_whole, expect=wire.Frame)
+    assert got.camera_size() == (2, 1) and got.data.tolist() == whole.data.tolist()
+    with pytest.raises(wire.WireError, match="codec version 3"):
+        wire.decode(data_shrunk, expect=wire.Frame)
 
 
 def test_times_survive_the_u16_coding() -> None:

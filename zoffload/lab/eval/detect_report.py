@@ -65,7 +65,8 @@ def _order(strategy: str) -> float:
             order = 5.0
     else:
         order = {"edge": 1.0, "thesis": 2.0, "dynamic": 3.0, "dispatch": 4.0}.get(base, 5.0)
-    return order + (0.001 if encoding != "bgr8" else 0.0)
+    shrunk, kind = _frames_key(encoding)
+    return order + 0.001 * (kind + 3 * shrunk)
 
 
 def offload_ratio(strategy: str) -> float | None:
@@ -84,7 +85,8 @@ def is_fixed(strategy: str, encoding: str = "bgr8") -> bool:
     if shrunk:
         kinds = tuple(k + SHRUNK for k in kinds)
     base, got = split(strategy)
-    return offload_ratio(strategy) is not None and (got in kinds or base == "robot")  # robot only sends none
+    # Robot only sends no frames: its plain row stands for every encoding and size
+    return offload_ratio(strategy) is not None and (got in kinds or (base == "robot" and got == "bgr8"))
 
 
 def frames_name(encoding: str) -> str:
@@ -99,11 +101,15 @@ def frames_name(encoding: str) -> str:
     return name
 
 
-def _frames_order(row: dict[str, Any]) -> tuple[bool, int]:
-    encoding = split(row["strategy"])[1]
+def _frames_key(encoding: str) -> tuple[bool, int]:
+    """Whole frames before shrunk ones; raw, JPEG, per frame."""
     kinds = ["bgr8", "jpeg", "auto"]
     kind = encoding.removesuffix(SHRUNK)
     return encoding.endswith(SHRUNK), kinds.index(kind) if kind in kinds else len(kinds)
+
+
+def _frames_order(row: dict[str, Any]) -> tuple[bool, int]:
+    return _frames_key(split(row["strategy"])[1])
 
 
 def row_name(strategy: str) -> str:
@@ -185,7 +191,7 @@ def targets(rows: list[dict[str, Any]]) -> str:
             encoding = split(ours["strategy"])[1]
             fixed = [r for r in group
                      if is_fixed(r["strategy"], encoding) and r.get("ap50_async") is not None]
-            if ours is None or ours.get("ap50_async") is None or not fixed:
+            if ours.get("ap50_async") is None or not fixed:
                 continue
             best = max(fixed, key=lambda r: r["ap50_async"])
             edges = [r for r in fixed if split(r["strategy"])[0] == "edge"]

@@ -277,8 +277,11 @@ class Recording:
             self.stream.log(path, self.rr.EncodedImage(contents=f.data.tobytes(), media_type="image/jpeg"))
         else:
             self.stream.log(path, self.rr.Image(f.data.reshape(f.height, f.width, 3), color_model="BGR"))
+        # The answer's boxes are in the camera's pixels; the frame as it travelled may be shrunk
+        cam_w, cam_h = f.camera_size()
+        boxes = d.boxes * np.array([f.width / cam_w, f.height / cam_h] * 2, np.float32)
         self.stream.log(f"{path}/detections", self.rr.Boxes2D(
-            array=d.boxes, array_format=self.rr.Box2DFormat.XYXY, class_ids=d.classes,
+            array=boxes, array_format=self.rr.Box2DFormat.XYXY, class_ids=d.classes,
             labels=[f"{c} {s:.2f}" for c, s in zip(d.classes.tolist(), d.scores.tolist(), strict=True)],
             colors=[EDGE_COLOR] * len(d.boxes)))
         state.pending_frame, state.frame_logged = None, now

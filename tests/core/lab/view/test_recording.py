@@ -141,3 +141,18 @@ def test_the_layout_has_a_camera_and_link_view_per_robot(rec: Any) -> None:
     names.clear()
     walk(rec.blueprint().root_container)
     assert "a edge frame" in names and "b edge frame" not in names
+
+
+def test_edge_boxes_are_drawn_on_a_shrunk_frame_at_its_scale(rec: Any, tmp_path: Path) -> None:
+    """The edge answers in the camera's pixels; a frame that travelled shrunk (here a 128 x 96
+    camera frame sent at 64 x 48) is drawn as it travelled, so its boxes are scaled down to it."""
+    import dataclasses
+
+    shrunk = dataclasses.replace(frame(R, 7), camera_width=128, camera_height=96)
+    rec.frame(shrunk, 1.0)
+    rec.detections(detections(R, 7), 1.1)  # boxes [1, 2, 30, 40] in the camera's pixels
+    got = read(rec, tmp_path)
+    (boxes,) = [b for b in column(got[f"/robots/{R}/edge_frame/detections"], "half_sizes")]
+    (centres,) = column(got[f"/robots/{R}/edge_frame/detections"], "centers")
+    np.testing.assert_allclose(centres, [[(1 + 30) / 4, (2 + 40) / 4]], atol=1e-5)
+    np.testing.assert_allclose(boxes, [[(30 - 1) / 4, (40 - 2) / 4]], atol=1e-5)
