@@ -274,28 +274,8 @@ class CameraOffloader:
 
     def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "", encoding: str = RAW,
                 size: tuple[int, int] | None = None) -> bytes:
-        """The frame's message: shrunk to ``size`` (width, height) first when that is smaller (with
-        the edge detector's own interpolation, so its resize of what arrives is the identity)."""
-        img = frame.image
-        cam_h, cam_w = img.shape[:2]
-        shrunk = size is not None and size != (cam_w, cam_h)
-        if shrunk:
-            assert size is not None
-            img = resize_to(img, size)
-        h, w = img.shape[:2]
-        if encoding == JPEG:
-            import cv2
-
-            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.opts.jpeg_quality])
-            if not ok:
-                raise ValueError("JPEG encoding failed")
-            data = buf.ravel()
-        else:
-            data = np.ascontiguousarray(img).reshape(-1)
-        return wire.encode(wire.Frame(robot=self.opts.robot_id, seq=seq, send_stamp=now, capture_stamp=now,
-                                      encoding=encoding, width=w, height=h, data=data, edge=edge,
-                                      camera_width=cam_w if shrunk else 0,
-                                      camera_height=cam_h if shrunk else 0))
+        return frame_message(frame.image, self.opts.robot_id, seq, now, edge, encoding,
+                             self.opts.jpeg_quality, size)
 
     def _sender(self) -> None:
         """Encodes and puts edge frames one at a time. The publisher blocks while the link is busy
@@ -461,6 +441,30 @@ class CameraOffloader:
         else:
             with open(out_dir / "monitor.csv", "w", newline="") as f:
                 csv.DictWriter(f, fieldnames=ResourceMonitor.FIELDS).writeheader()
+
+
+def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str = "", encoding: str = RAW,
+                  jpeg_quality: int = 80, size: tuple[int, int] | None = None) -> bytes:
+    """The encoded ``wire.Frame`` of a BGR ``image``: shrunk to ``size`` (width, height) first when
+    that differs (with the edge detector's own interpolation, so its resize of what arrives is the
+    identity), then raw or JPEG. The frame sender's whole work per frame besides the put
+    (``benchmarks/bench_frame_send.py`` times it)."""
+    cam_h, cam_w = image.shape[:2]
+    shrunk = size is not None and size != (cam_w, cam_h)
+    img = resize_to(image, size) if size is not None and shrunk else image
+    h, w = img.shape[:2]
+    if encoding == JPEG:
+        import cv2
+
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        data = buf.ravel()
+    else:
+        data = np.ascontiguousarray(img).reshape(-1)
+    return wire.encode(wire.Frame(robot=robot, seq=seq, send_stamp=now, capture_stamp=now, encoding=encoding,
+                                  width=w, height=h, data=data, edge=edge,
+                                  camera_width=cam_w if shrunk else 0, camera_height=cam_h if shrunk else 0))
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

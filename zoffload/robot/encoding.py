@@ -1,8 +1,9 @@
 """How each frame to the edge is encoded: raw (``bgr8``), JPEG, or ``auto`` (chosen per frame).
 
-A raw 848 x 480 frame is 1.2 MB whole (0.52 MB shrunk to PicoDet's 416 x 416), its JPEG ~50 kB
-(~28 kB); JPEG costs the robot its encoding (about 4 ms of
-a core per frame, a sixth of a quarter-core robot's budget at 25 FPS) and the edge its decoding.
+A raw 848 x 480 frame is 1.2 MB whole (0.52 MB shrunk to PicoDet's 416 x 416), its JPEG ~68 kB
+(~34 kB); JPEG costs the robot its encoding (~1 ms of a core per whole frame, 0.8 ms shrunk:
+benchmarks/bench_frame_send.py; under a CPU quota it may wait for the next period) and the edge its
+decoding.
 Which is better depends on the link: raw wins where the link carries raw frames as fast as the
 edge's detector takes them (on an unconstrained link, a quarter-core robot with raw frames scores
 61.1 async AP50 against 57.2 with JPEG, held-out images), JPEG wherever it does not (a 160 Mbps
