@@ -48,6 +48,20 @@ def _frames(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def _run_to_the_end(port: int, tmp_path: Path, cfg: Path) -> tuple[Path, dict[str, Any]]:
+    """An edge (detector only) listening on ``port`` and a robot with the settings ``cfg`` run until
+    the robot's camera is done; its results folder and ``vision_metrics.json``."""
+    with client(port) as s:
+        edge = start_edge(s, edge_args(port, "--no-mapping"), tmp_path / "edge.log")
+        try:
+            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
+            assert robot.wait(120) == 0, robot.text()
+        finally:
+            edge.sigint()
+    run = tmp_path / "robot"
+    return run, json.loads((run / "vision_metrics.json").read_text())
+
+
 def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before: str) -> tuple[Proc, Proc]:
     """An edge (detector only) and a robot with the settings ``cfg``, once the edge has answered 20
     of the robot's frames; both are stopped again when that does not happen."""
@@ -182,15 +196,7 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
             trace.write_text(HEAD + f"0, {mbps}, {mbps}, 2, 0, 0\n")
             port = stack.enter_context(emulator(trace, free_port))[0]
         cfg = _robot_yaml(tmp_path, port, coco_dir, strategy="edge", encoding="auto", max_frames=300)
-        with client(free_port) as s:
-            edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
-            try:
-                robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
-                assert robot.wait(120) == 0, robot.text()
-            finally:
-                edge.sigint()
-    run = tmp_path / "robot"
-    m = json.loads((run / "vision_metrics.json").read_text())
+        run, m = _run_to_the_end(free_port, tmp_path, cfg)
     assert m["balanced"] and m["balance"]["edge_done"] >= 150, m["balance"]
     enc = m["encodings"]
     frames = [f for f in _frames(run) if f["status"] == "edge_done"]
@@ -219,15 +225,7 @@ def test_frames_shrunk_to_the_edge_detector_input_get_the_boxes_of_the_whole_fra
     from zoffload.sources.images import CocoClipSource
 
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", encoding="bgr8", max_frames=100)
-    with client(free_port) as s:
-        edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
-        try:
-            robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
-            assert robot.wait(120) == 0, robot.text()
-        finally:
-            edge.sigint()
-    run = tmp_path / "robot"
-    m = json.loads((run / "vision_metrics.json").read_text())
+    run, m = _run_to_the_end(free_port, tmp_path, cfg)
     assert m["balanced"] and m["send_size"] == "detector", m["balance"]
     done = [f for f in _frames(run) if f["status"] == "edge_done"]
     assert len(done) >= 50, m["balance"]

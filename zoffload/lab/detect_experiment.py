@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from zoffload.lab.eval.detect_report import run_label
 from zoffload.lab.eval.detection import detection_metrics
 from zoffload.lab.runner import StartError, frames_line, run_offload
 from zoffload.runtime.config import (
@@ -47,7 +48,6 @@ SWEEP_STRATEGIES = ["robot", *[f"ratio:{r / 10:g}" for r in range(1, 10)], "edge
 SWEEP_TRACES = ["none", "detect-capped", "wifi-locations", "mmwave-blockage"]
 SWEEP_QUOTAS = [0.25, 1.0]  # robot cores: the thesis' weak robot, and one full core
 SWEEP_IMAGES = "coco-clips@holdout"
-SHRUNK = "+shrunk"  # label suffix of runs whose frames were shrunk to the edge detector's input
 
 
 @dataclass(frozen=True)
@@ -130,14 +130,6 @@ def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     if bal.get("frames_in"):
         row["skipped_pct"] = 100.0 * bal.get("skipped", 0) / bal["frames_in"]
     return row
-
-
-def run_label(strategy: str, encoding: str, send_size: str = "camera") -> str:
-    """``S`` (raw frames), ``S@jpeg``, ``S@auto``; ``+shrunk`` when frames were shrunk to the edge
-    detector's input (``S@bgr8+shrunk`` for raw ones): the report's row names."""
-    if send_size == "detector":
-        return f"{strategy}@{encoding}{SHRUNK}"
-    return strategy if encoding == "bgr8" else f"{strategy}@{encoding}"
 
 
 def summary_line(row: dict[str, Any]) -> str:

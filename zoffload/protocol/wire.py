@@ -33,8 +33,7 @@ from typing import Any, ClassVar, TypeVar, cast, overload
 import msgpack
 import numpy as np
 
-VERSION = 3  # the newest this build writes (``encode`` writes the lowest that carries the message)
-BASE_VERSION = 2  # what a message without version-3 fields goes as
+BASE_VERSION = 2  # what a message without version-3 fields goes as (``encode``: the lowest that carries it)
 READS = (1, 2, 3)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64

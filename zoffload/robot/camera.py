@@ -55,7 +55,7 @@ from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.monitor import RaplMonitor, ResourceMonitor
 from zoffload.runtime.session import has_subscribers, undeclare
-from zoffload.sources.images import ImageFrame, open_image_source
+from zoffload.sources.images import open_image_source
 
 log = logging.getLogger("zoffload.robot.camera")
 
@@ -272,11 +272,6 @@ class CameraOffloader:
                     del self._edge_images[next(iter(self._edge_images))]
             self._send_cond.notify()
 
-    def _encode(self, frame: ImageFrame, seq: int, now: float, edge: str = "", encoding: str = RAW,
-                size: tuple[int, int] | None = None) -> bytes:
-        return frame_message(frame.image, self.opts.robot_id, seq, now, edge, encoding,
-                             self.opts.jpeg_quality, size)
-
     def _sender(self) -> None:
         """Encodes and puts edge frames one at a time. The publisher blocks while the link is busy
         (a raw frame, 0.52 MB shrunk to PicoDet's input, 1.2 MB whole, takes 26 or 61 ms at 160 Mbps)
@@ -295,7 +290,8 @@ class CameraOffloader:
                 size = self.choice.send_size(edge, w, h) if self.opts.send_size == "detector" else (w, h)
             encode_start = time.time()
             try:
-                data = self._encode(reading.frame, reading.seq, encode_start, edge, encoding, size)
+                data = frame_message(reading.frame.image, self.opts.robot_id, reading.seq, encode_start, edge,
+                                     encoding, self.opts.jpeg_quality, size)
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
                     self.book.send_failed(reading.seq, time.time())
@@ -450,9 +446,9 @@ def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str
     identity), then raw or JPEG. The frame sender's whole work per frame besides the put
     (``benchmarks/bench_frame_send.py`` times it)."""
     cam_h, cam_w = image.shape[:2]
-    shrunk = size is not None and size != (cam_w, cam_h)
-    img = resize_to(image, size) if size is not None and shrunk else image
+    img = image if size is None else resize_to(image, size)
     h, w = img.shape[:2]
+    shrunk = (w, h) != (cam_w, cam_h)
     if encoding == JPEG:
         import cv2
 

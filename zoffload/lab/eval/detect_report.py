@@ -35,7 +35,7 @@ ROW_NAMES = {"robot": "Robot only", "edge": "Edge only", "thesis": "Dynamic (the
              "dynamic@jpeg": "Dynamic (ours, before) + JPEG", "dispatch@jpeg": "Dispatch (ours) + JPEG"}
 OURS = "dispatch"
 ENCODING_NAMES = {"bgr8": "raw", "jpeg": "JPEG", "auto": "encoding per frame"}
-SHRUNK = "+shrunk"  # frames shrunk to the edge detector's input (lab/detect_experiment.py run_label)
+SHRUNK = "+shrunk"  # frames shrunk to the edge detector's input (``run_label``)
 FIGURES = ["ap50_async", "ap50_sync", "robot_rtt_ms", "edge_rtt_ms", "processed_pct", "offloaded_pct",
            "skipped_pct", "cpu_process_pct", "power_w", "mbps_out", "mean_lateness_frames"]
 
@@ -51,6 +51,19 @@ def split(strategy: str) -> tuple[str, str]:
     """``ratio:0.7@jpeg`` → (``ratio:0.7``, ``jpeg``); without ``@``, frames go raw (``bgr8``)."""
     base, _, encoding = strategy.partition("@")
     return base, encoding or "bgr8"
+
+
+def run_label(strategy: str, encoding: str, send_size: str = "camera") -> str:
+    """``S`` (raw frames), ``S@jpeg``, ``S@auto``; ``+shrunk`` when frames were shrunk to the edge
+    detector's input (``S@bgr8+shrunk`` for raw ones): the report's row names."""
+    if send_size == "detector":
+        return f"{strategy}@{encoding}{SHRUNK}"
+    return strategy if encoding == "bgr8" else f"{strategy}@{encoding}"
+
+
+def _frames(encoding: str) -> tuple[str, bool]:
+    """``jpeg+shrunk`` → (``jpeg``, True): the encoding, and whether frames were shrunk."""
+    return encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
 
 
 def _order(strategy: str) -> float:
@@ -80,7 +93,7 @@ def is_fixed(strategy: str, encoding: str = "bgr8") -> bool:
     beat (ours on raw frames against the raw ones, ours with JPEG frames against the JPEG ones;
     ours choosing the encoding per frame, ``auto``, against both). Frames shrunk to the edge
     detector's input (``+shrunk``) only against fixed strategies whose frames were shrunk too."""
-    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    kind, shrunk = _frames(encoding)
     kinds: tuple[str, ...] = ("bgr8", "jpeg") if kind == "auto" else (kind,)
     if shrunk:
         kinds = tuple(k + SHRUNK for k in kinds)
@@ -92,7 +105,7 @@ def is_fixed(strategy: str, encoding: str = "bgr8") -> bool:
 def frames_name(encoding: str) -> str:
     """How ours sent its frames and what it is set against, e.g. for ``jpeg+shrunk`` "JPEG frames,
     shrunk to the edge's input, against the JPEG ones, shrunk"."""
-    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    kind, shrunk = _frames(encoding)
     name = {"bgr8": "raw frames, against the raw ones", "jpeg": "JPEG frames, against the JPEG ones",
             "auto": "encoding per frame, against raw and JPEG ones"}.get(kind, kind)
     if shrunk:
@@ -104,8 +117,8 @@ def frames_name(encoding: str) -> str:
 def _frames_key(encoding: str) -> tuple[bool, int]:
     """Whole frames before shrunk ones; raw, JPEG, per frame."""
     kinds = ["bgr8", "jpeg", "auto"]
-    kind = encoding.removesuffix(SHRUNK)
-    return encoding.endswith(SHRUNK), kinds.index(kind) if kind in kinds else len(kinds)
+    kind, shrunk = _frames(encoding)
+    return shrunk, kinds.index(kind) if kind in kinds else len(kinds)
 
 
 def _frames_order(row: dict[str, Any]) -> tuple[bool, int]:
@@ -117,7 +130,7 @@ def row_name(strategy: str) -> str:
         return ROW_NAMES[strategy]
     base, encoding = split(strategy)
     name = ROW_NAMES.get(base, base.replace("ratio:", "Ratio "))
-    kind, shrunk = encoding.removesuffix(SHRUNK), encoding.endswith(SHRUNK)
+    kind, shrunk = _frames(encoding)
     if shrunk:
         return f"{name} + {ENCODING_NAMES.get(kind, kind)}, shrunk"
     return name if encoding == "bgr8" else f"{name} + {ENCODING_NAMES.get(encoding, encoding)}"
