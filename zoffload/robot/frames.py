@@ -421,5 +421,6 @@ class FrameBook:
             "per_edge": dict(self.per_edge),
             "other": {k: v for k, v in self.counters.items() if k not in bal},
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
+            "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
             "encodings": self.encodings.summary(),
         }

@@ -252,6 +252,10 @@ class PerceptionSettings(_Strict):
         default=1.0, gt=0,
         description="dispatch: seconds without an edge frame before a local frame is also copied to the edge",
     )
+    retry_period: float = Field(
+        default=0.2, gt=0,
+        description="dispatch: seconds between frames (or copies) sent to an edge that stopped answering",
+    )
     cpu_share: float = Field(
         default=1.0, gt=0, le=1,
         description="dispatch: share of the CPU quota the robot fills; its local detector is paced within it",

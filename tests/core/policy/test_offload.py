@@ -198,6 +198,36 @@ def test_dispatch_copies_a_local_frame_to_keep_the_edge_estimate_fresh() -> None
     assert d.decide(_st(now=12.0, capture=12.0, edge_available=False)) == LOCAL
 
 
+def test_a_blocked_dispatcher_asks_the_edge_again_every_retry_period_without_losing_frames() -> None:
+    """A Wi-Fi outage: an edge frame times out and blocks the edge. The link may be back a moment
+    later; the dispatcher finds out within a retry period, with a copy of a frame it detects locally
+    or with a frame it would otherwise skip, never one the local detector would have taken."""
+    d = _measured(local=0.1, edge=0.06, retry_period=0.19, refresh_period=1.0)
+    d.on_edge_timeout(0.5)
+    assert d.blocked
+    sides, t = [], 2.0
+    for k in range(25):  # 1 s of frames at 25 Hz, the local detector busy on every other one
+        t = 2.0 + 0.04 * k
+        busy = {"local_busy": True, "local_busy_for": 0.0, "local_waiting": True} if k % 2 else {}
+        sides.append((k % 2, d.decide(_st(now=t, capture=t, **busy))))
+    asked = [(k, side) for k, (b, side) in enumerate(sides) if side in (EDGE, BOTH)]
+    # one question every 5th frame (0.2 s), not one a second as the refresh alone would ask
+    assert [k for k, _ in asked] == [0, 5, 10, 15, 20]
+    # a frame the robot detects goes as a copy; only a frame it would skip goes to the edge itself
+    assert all((side == BOTH) == (k % 2 == 0) for k, side in asked)
+    assert {side for b, side in sides if not b} <= {LOCAL, BOTH}
+    assert d.retries == sum(1 for _, side in asked if side == EDGE) == 2
+    # at most max_in_flight unanswered questions, none while the sender still holds a frame
+    full = tuple((t - 0.1 * i, 1e6) for i in range(d.max_in_flight))
+    assert d.decide(_st(now=t + 1.0, capture=t + 1.0, edge_sends=full, in_flight=4)) == LOCAL
+    assert d.decide(_st(now=t + 2.0, capture=t + 2.0, send_waiting=True)) == LOCAL
+    # an answer unblocks it: the edge is an option again, and no more questions are asked
+    d.on_edge_result(0.06, _reply(t + 2.9, t + 2.96))
+    assert not d.blocked
+    d.decide(_st(now=t + 3.0, capture=t + 3.0, local_busy=True, local_waiting=True))
+    assert math.isfinite(d.estimates[1]) and d.retries == 2
+
+
 def test_dispatch_paces_the_local_detector_within_the_cpu_quota() -> None:
     d = _measured(local=0.02, edge=0.2)
     d.on_local_result(0.02, service=0.02, cpu=0.02)
@@ -244,7 +274,8 @@ def test_dispatch_is_the_default_and_takes_its_settings() -> None:
     p = PerceptionSettings()
     assert p.strategy == "dispatch"
     d = make_strategy(p.strategy, max_in_flight=p.max_in_flight, max_age=p.max_age, local_bias=p.local_bias,
-                      refresh_period=p.refresh_period, cpu_share=p.cpu_share)
-    assert isinstance(d, Dispatcher) and d.max_age == p.max_age and d.window == p.max_in_flight
+                      refresh_period=p.refresh_period, retry_period=p.retry_period, cpu_share=p.cpu_share)
+    assert isinstance(d, Dispatcher) and d.max_age == p.max_age
+    assert d.window == p.max_in_flight and d.retry_period == p.retry_period
     with pytest.raises(ValueError, match="dispatch"):
         make_strategy("fastest")
