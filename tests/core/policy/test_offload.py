@@ -203,8 +203,9 @@ def test_a_blocked_dispatcher_asks_the_edge_again_every_retry_period_without_los
     later; the dispatcher finds out within a retry period, with a copy of a frame it detects locally
     or with a frame it would otherwise skip, never one the local detector would have taken."""
     d = _measured(local=0.1, edge=0.06, retry_period=0.19, refresh_period=1.0)
-    d.on_edge_timeout(0.5)
-    assert d.blocked
+    for _ in range(4):  # the frames in flight when the link went: one outage, one smaller window
+        d.on_edge_timeout(0.5)
+    assert d.blocked and d.window == d.max_in_flight - 1
     sides, t = [], 2.0
     for k in range(25):  # 1 s of frames at 25 Hz, the local detector busy on every other one
         t = 2.0 + 0.04 * k
@@ -223,7 +224,10 @@ def test_a_blocked_dispatcher_asks_the_edge_again_every_retry_period_without_los
     assert d.decide(_st(now=t + 2.0, capture=t + 2.0, send_waiting=True)) == LOCAL
     # an answer unblocks it: the edge is an option again, and no more questions are asked
     d.on_edge_result(0.06, _reply(t + 2.9, t + 2.96))
-    assert not d.blocked
+    assert not d.blocked and d.window == d.max_in_flight - 1 + 0.25
+    d.on_edge_timeout(0.5)  # a new loss after an answer is a new outage
+    assert d.window == d.max_in_flight - 2 + 0.25
+    d.on_edge_result(0.06, _reply(t + 2.95, t + 2.99))
     d.decide(_st(now=t + 3.0, capture=t + 3.0, local_busy=True, local_waiting=True))
     assert math.isfinite(d.estimates[1]) and d.retries == 2
 
