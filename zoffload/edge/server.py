@@ -254,6 +254,10 @@ class EdgeServer:
 
     # Shutdown
     def shutdown(self) -> None:
+        with self.stop.bounded_shutdown():  # past its limit: stacks in the log, exit 1
+            self._shutdown()
+
+    def _shutdown(self) -> None:
         self.stop.set()
         # Robots fall back to local processing the moment the token goes: tell them first
         if self._token is not None:

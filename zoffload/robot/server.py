@@ -109,6 +109,10 @@ class RobotServer:
 
     # Shutdown
     def shutdown(self) -> None:
+        with self.stop.bounded_shutdown():  # past its limit: stacks in the log, exit 1
+            self._shutdown()
+
+    def _shutdown(self) -> None:
         for p in self.pipelines:
             p.close()
         self.presence.stop()

@@ -1,0 +1,70 @@
+"""A daemon asked to stop stops: a shutdown stuck past its limit dumps every thread's stack and
+exits with ``ExitCode.FAILURE``; one that finishes in time exits normally, with no dump."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from zoffload.runtime.errors import ExitCode
+from zoffload.runtime.lifecycle import StopSignal
+
+# A daemon's shape in a few lines: install the signals, wait for one, shut down. Its shutdown takes
+# ``argv[1]`` s; a *fake* hang (a sleep): the real one seen once in CI could not be caused at will.
+DAEMON = textwrap.dedent("""
+    import sys, time
+    from zoffload.runtime.lifecycle import StopSignal
+
+    def stuck_in_shutdown(seconds):
+        time.sleep(seconds)
+
+    stop = StopSignal(shutdown_limit=1.0).install()
+    print("up", flush=True)
+    stop.wait(30)
+    with stop.bounded_shutdown():
+        stuck_in_shutdown(float(sys.argv[1]))
+    print("stopped", flush=True)
+""")
+
+
+def _daemon(shutdown: float) -> tuple[int, str, str, float]:
+    p = subprocess.Popen([sys.executable, "-c", DAEMON, str(shutdown)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout is not None and p.stdout.readline() == "up\n"
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    return p.returncode, out, err, time.monotonic() - t0
+
+
+def test_a_shutdown_stuck_past_its_limit_dumps_the_stacks_and_exits() -> None:
+    code, out, err, took = _daemon(shutdown=60)
+    assert code == ExitCode.FAILURE, (code, err)
+    assert took < 10, took  # the 1 s limit, not the 60 s hang
+    assert "stopped" not in out
+    assert "Timeout" in err and "stuck_in_shutdown" in err, err  # where it was stuck
+
+
+def test_a_shutdown_within_its_limit_exits_normally_without_a_dump() -> None:
+    code, out, err, _ = _daemon(shutdown=0.2)
+    assert code == ExitCode.OK and "stopped" in out, err
+    assert "Timeout" not in err and "stuck_in_shutdown" not in err, err
+
+
+def test_a_stop_signal_it_did_not_install_bounds_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process servers (tests, the Python API) leave the process's faulthandler alone."""
+    armed: list[float] = []
+    monkeypatch.setattr("faulthandler.dump_traceback_later", lambda t, **kw: armed.append(t))
+    with StopSignal(shutdown_limit=0.01).bounded_shutdown():
+        pass
+    assert armed == []
