@@ -9,11 +9,23 @@ Each frame goes to the side expected to finish it soonest given what that side i
 * **edge**: the edge path (sender, link, edge queue, edge detector, answer) is one pipeline with a
   bottleneck time per frame, ``max(edge service time, bytes / delivered rate)`` (the delivered rate:
   the bytes the edge answered per second while frames were queued behind each other), and a base
-  latency ``r0``: that bottleneck time plus the rest of the path, the shortest recent send-to-answer
-  time less the bottleneck's share then. The frames in flight are laid out on that pipeline after
-  the last answer, oldest first (one overdue is assumed to take as long again as it is late
-  already); a new frame comes one bottleneck time after the last of them, and never sooner than
-  ``r0`` from now.
+  latency ``r0``: the send-to-answer time of a frame with nothing ahead of it, the shortest recent
+  one of the frames *sent alone* (none other unanswered) less the edge's own time on it (queue and
+  detector, as the edge reports them), plus the edge detector's service time now. The frames in
+  flight are laid out on that pipeline after the last answer, oldest first (one overdue is assumed
+  to take as long again as it is late already); a new frame comes one bottleneck time after the
+  last of them, and never sooner than ``r0`` from now.
+
+The base from frames sent alone: with frames always in flight, every answer time holds some queue,
+and a base learnt from all of them grew with the queue, the depth (below) with the base, and the
+queue with the depth. When no frame sent alone was answered for ``base_period`` (20 s), the edge
+path is *drained*: no edge frame until none is in flight (a few frames go to the local detector or
+are skipped), and the next one goes alone (``drains``). Before, the base also took off the
+bottleneck's estimated time then and added it back now; a delivered-rate sample far off made it
+negative (a replay of a real capped-link run: -51 ms). Tuning half, a quarter core, interleaved
+with the old code, async AP50: capped link 69.5 (5 runs; three fell to 64-67, the robot detecting
+151-188 frames itself and the edge's median queue at 11-25 ms) -> 74.5 (3 runs), Wi-Fi 67.9 ->
+67.2; the held-out half, 2 runs each: capped 57.2 -> 56.4, Wi-Fi 50.5 -> 52.5: within the spread.
 
 Fresh frames, not queues: the edge path holds as many frames as keep its bottleneck busy for a
 base latency, ``ceil(r0 / bottleneck time)``, plus ``queue_frames`` waiting (at most ``window``),
@@ -145,6 +157,10 @@ class Dispatcher(Strategy):
     frame_bytes: Ewma = field(default_factory=lambda: Ewma(0.2))
     losses: Ewma = field(default_factory=lambda: Ewma(0.2))  # share of edge frames never detected
     fixed_latency: Recent = field(default_factory=lambda: Recent(32, 10.0))  # r0 minus the bottleneck
+    base: Recent = field(default_factory=lambda: Recent(64, 10.0))  # the same, of frames sent alone
+    base_period: float = 20.0  # s without a frame sent alone before the edge path is drained for one
+    draining: bool = False  # no edge frames until none is in flight: the next one measures the base
+    drains: int = 0
     delivered: Recent = field(default_factory=lambda: Recent(8, 3.0))
     cpu: CpuMeter = field(default_factory=CpuMeter)
     window: float = 4.0
@@ -154,6 +170,7 @@ class Dispatcher(Strategy):
     _last_capture: float = NAN
     _last_edge_send: float = -math.inf
     _last_answer: float = -math.inf
+    _base_at: float = NAN  # the last answer to a frame sent alone (or the first answer)
     _local_seen: float = -math.inf  # when the local detector last finished a frame
     _local_fresh: bool = False
     _local_results: int = 0
@@ -173,12 +190,12 @@ class Dispatcher(Strategy):
         return max(parts) if parts else NAN
 
     def r0(self, now: float) -> float:
-        """Send-to-answer time of a frame that queues behind none: the shortest recent one less the
-        bottleneck's time then, plus the bottleneck's time now (a link that slows down shows at once,
-        a frame that waited in a queue is not mistaken for the base)."""
-        fixed = self.fixed_latency.min(now)
-        now_part = self.bottleneck(self.frame_bytes.value, now)
-        return fixed + (now_part if math.isfinite(now_part) else 0.0)
+        """Send-to-answer time of a frame that queues behind none: the shortest recent one of the
+        frames sent alone (none other unanswered; all frames until one is known) less the edge's
+        own time on it, plus the edge detector's service time now (see the module's docstring)."""
+        fixed = self.base.min(now) if self.base.samples else self.fixed_latency.min(now)
+        service = self.edge_service.value
+        return fixed + (service if math.isfinite(service) else 0.0)
 
     def interval(self, nbytes: float, now: float) -> float:
         """Spacing of frames through the edge path; before any delivered rate is known, one frame
@@ -285,7 +302,9 @@ class Dispatcher(Strategy):
         # (a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
         # and the spare frame keeps the link busy through the robot's CPU stalls)
         in_depth = len(st.edge_sends) < self.depth(st.now)
-        spare = not options and not in_depth and len(st.edge_sends) < int(self.window)
+        if self._drain(st, edge_ok):  # the edge path empties, so the next frame measures its base
+            in_depth = False
+        spare = not options and not in_depth and not self.draining and len(st.edge_sends) < int(self.window)
         if not (in_depth or spare):
             f_edge = math.inf
         if f_edge <= deadline:
@@ -313,6 +332,18 @@ class Dispatcher(Strategy):
             self._last_edge_send = st.now
             return BOTH
         return LOCAL
+
+    def _drain(self, st: OffloadState, edge_ok: bool) -> bool:
+        """Whether the edge path is being drained: when no frame sent alone was answered for
+        ``base_period`` s, no edge frame goes until none is in flight (a few frames, the local
+        detector's or skipped, every few seconds at most), and the next one is sent alone."""
+        if (not self.draining and edge_ok and st.edge_sends and math.isfinite(self._base_at)
+                and st.now - self._base_at > self.base_period):
+            self.draining = True
+            self.drains += 1
+        if self.draining and (not edge_ok or not (st.edge_sends or st.send_waiting)):
+            self.draining = False  # empty: this frame goes alone (or the edge is gone anyway)
+        return self.draining
 
     def _to_edge(self, st: OffloadState) -> str:
         self._last_edge_send = st.now
@@ -361,5 +392,11 @@ class Dispatcher(Strategy):
         self.delivered.add(reply.result, reply.delivery_rate)
         self.edge_service.add(reply.service)
         self.frame_bytes.add(reply.bytes)
-        own = self.bottleneck(reply.bytes, reply.result)
-        self.fixed_latency.add(reply.result, reply.result - reply.sent - (own if math.isfinite(own) else 0.0))
+        # The path apart from the edge's own time on this frame (its queue, its detector)
+        edge_time = sum(x for x in (reply.service, reply.edge_queue) if math.isfinite(x))
+        fixed = max(0.0, reply.result - reply.sent - edge_time)
+        self.fixed_latency.add(reply.result, fixed)
+        if reply.alone:
+            self.base.add(reply.result, fixed)
+        if reply.alone or math.isnan(self._base_at):
+            self._base_at = reply.result

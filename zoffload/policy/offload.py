@@ -72,6 +72,8 @@ class EdgeReply:
     service: float  # the edge's own processing time (decode + inference), NaN if it says none
     delivery_rate: float = NAN  # bytes/s acked over this frame's flight, when the pipe was busy
     status: str = "ok"  # ok, dropped (the edge's queue overflowed), error
+    edge_queue: float = NAN  # how long it waited in the edge's queue (the edge says), NaN if unknown
+    alone: bool = False  # sent with no other edge frame unanswered: no queue in its answer time
 
 
 @dataclass

@@ -142,7 +142,8 @@ class FrameBook:
     def sent(self, seq: int, now: float, probe: bool, copy: bool = False, edge: str = "") -> None:
         """The frame (or its copy) is handed to the sender: in flight, its timeout runs from now on.
         ``edge``: the edge asked to detect it ("" = any edge that hears it); only its answer counts."""
-        self.records[seq]["edge"] = edge
+        # Nothing ahead of it on the link or at the edge: its answer time is the path's base
+        self.records[seq].update(edge=edge, alone=int(not self.in_flight and not self.copies))
         if copy:
             self.records[seq].update(copy=1)
             self.copies[seq] = now
@@ -299,7 +300,7 @@ class FrameBook:
             if rec.get("trial"):  # the strategy sees a trial's time only: its size is not the others'
                 nbytes = rate = NAN
         return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,
-                         status=status)
+                         status=status, edge_queue=queued_at_edge, alone=bool(rec.get("alone")))
 
     # Losses and fallback
     def expire(self, now: float) -> list[int]:
@@ -422,5 +423,6 @@ class FrameBook:
             "other": {k: v for k, v in self.counters.items() if k not in bal},
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
             "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
+            "edge_drains": getattr(self.strategy, "drains", None),  # dispatch's drains to measure the base
             "encodings": self.encodings.summary(),
         }

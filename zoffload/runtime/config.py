@@ -256,6 +256,10 @@ class PerceptionSettings(_Strict):
         default=0.2, gt=0,
         description="dispatch: seconds between frames (or copies) sent to an edge that stopped answering",
     )
+    base_period: float = Field(
+        default=20.0, gt=0,
+        description="dispatch: seconds without a frame sent alone before the edge path is drained for one",
+    )
     cpu_share: float = Field(
         default=1.0, gt=0, le=1,
         description="dispatch: share of the CPU quota the robot fills; its local detector is paced within it",

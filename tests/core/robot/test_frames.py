@@ -233,10 +233,15 @@ def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:
     assert st.cpu_time == 1.5 and st.local_cpu_time == 0.5 and st.local_last_start == 0.07
     # answers: the second was queued behind the first, so their gap is a delivery-rate sample
     b.edge_result(0, "ok", 0.10, 0.04, 0.0, *NONE)
-    b.edge_result(1, "ok", 0.15, 0.04, 0.0, *NONE)
+    b.edge_result(1, "ok", 0.15, 0.04, 0.01, *NONE)
     first, second = s.replies
     assert math.isnan(first.delivery_rate) and second.delivery_rate == pytest.approx(1e6 / 0.05)
     assert second.service == pytest.approx(0.04) and second.sent == pytest.approx(0.04)
+    assert second.edge_queue == pytest.approx(0.01)  # the edge's wait, as it reported it
+    # the first went with nothing else unanswered: its answer time is the path's base; the second
+    # went behind it
+    assert first.alone and not second.alone
+    assert b.records[0]["alone"] == 1 and b.records[1]["alone"] == 0
     # an edge frame the edge dropped from its queue is seen as refused, with no rate sample
     b.decide(3, 3, capture=0.2, now=0.2)
     b.sent(3, 0.2, False)
