@@ -39,7 +39,8 @@ class Proc:
     def __init__(self, args: list[str], log: Path) -> None:
         self.log = log
         self._f = open(log, "w")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # a daemon stuck in its stop dumps its stacks (runtime/lifecycle.py) before sigint() kills it
+        env = dict(os.environ, PYTHONUNBUFFERED="1", ZOFFLOAD_SHUTDOWN_LIMIT="20")
         self.p = subprocess.Popen(args, stdout=self._f, stderr=subprocess.STDOUT, env=env)
 
     def sigint(self, timeout: float = 30) -> int:

@@ -201,8 +201,11 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
     enc = m["encodings"]
     frames = [f for f in _frames(run) if f["status"] == "edge_done"]
     trials = [f for f in frames if f["trial"] == "1"]
-    assert frames[0]["encoding"] == "jpeg" and enc["trials"] >= 1 and trials, enc  # JPEG until a trial
-    assert all(f["encoding"] == "bgr8" for f in trials)
+    # every trial sent, answered or not: an edge slower than the camera (51 ms a frame once, on a
+    # busy machine) drops a queued trial frame for a newer one, and the robot backs off
+    sent = [f for f in _frames(run) if f["trial"] == "1"]
+    assert frames[0]["encoding"] == "jpeg" and enc["trials"] == len(sent) >= 1, enc  # JPEG until a trial
+    assert all(f["encoding"] == "bgr8" for f in sent)
     if mbps is None:
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
         last = frames[-100:]
@@ -211,10 +214,6 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
         assert float(trials[-1]["bytes"]) > 416 * 416 * 3  # and raw
     else:
         assert enc["now"] == "jpeg" and enc["switches"] == 0, enc
-        # every trial sent, answered or not: an edge slower than the camera (51 ms a frame once,
-        # on a busy machine) drops a queued trial frame for a newer one, and the robot backs off
-        sent = [f for f in _frames(run) if f["trial"] == "1"]
-        assert len(sent) == enc["trials"], enc
         assert 2 <= len(sent) <= 4, [(f["seq"], f["status"]) for f in sent]  # 12 s: backing off 1, 2, 4, 8 s
         assert sum(f["encoding"] == "jpeg" for f in frames) >= len(frames) - len(trials)
 

@@ -20,7 +20,10 @@ The base from frames sent alone: with frames always in flight, every answer time
 and a base learnt from all of them grew with the queue, the depth (below) with the base, and the
 queue with the depth. When no frame sent alone was answered for ``base_period`` (20 s), the edge
 path is *drained*: no edge frame until none is in flight (a few frames go to the local detector or
-are skipped), and the next one goes alone (``drains``). Before, the base also took off the
+are skipped), and the next one goes alone (``drains``; the next drain a ``base_period`` later at
+the soonest). The robot (robot/frames.py) does not count a frame as alone after a loss until an
+answer came (the lost frame may still be on the link), nor a trial of the other encoding; a switch
+of encoding clears the base and drains at the next frame. Before, the base also took off the
 bottleneck's estimated time then and added it back now; a delivered-rate sample far off made it
 negative (a replay of a real capped-link run: -51 ms). Tuning half, a quarter core, interleaved
 with the old code, async AP50: capped link 69.5 (5 runs; three fell to 64-67, the robot detecting
@@ -156,8 +159,8 @@ class Dispatcher(Strategy):
     edge_service: Ewma = field(default_factory=lambda: Ewma(0.2))
     frame_bytes: Ewma = field(default_factory=lambda: Ewma(0.2))
     losses: Ewma = field(default_factory=lambda: Ewma(0.2))  # share of edge frames never detected
-    fixed_latency: Recent = field(default_factory=lambda: Recent(32, 10.0))  # r0 minus the bottleneck
-    base: Recent = field(default_factory=lambda: Recent(64, 10.0))  # the same, of frames sent alone
+    fixed_latency: Recent = field(default_factory=lambda: Recent(32, 10.0))  # r0 less the edge's time
+    base: Recent = field(default_factory=lambda: Recent(64, 40.0))  # the same, of frames sent alone
     base_period: float = 20.0  # s without a frame sent alone before the edge path is drained for one
     draining: bool = False  # no edge frames until none is in flight: the next one measures the base
     drains: int = 0
@@ -179,6 +182,8 @@ class Dispatcher(Strategy):
 
     def __post_init__(self) -> None:
         self.window = float(self.max_in_flight)
+        # two drains' samples at least: one stalled frame alone does not set the base
+        self.base.horizon = max(self.base.horizon, 2 * self.base_period)
 
     # Estimates
     def bottleneck(self, nbytes: float, now: float) -> float:
@@ -336,13 +341,14 @@ class Dispatcher(Strategy):
     def _drain(self, st: OffloadState, edge_ok: bool) -> bool:
         """Whether the edge path is being drained: when no frame sent alone was answered for
         ``base_period`` s, no edge frame goes until none is in flight (a few frames, the local
-        detector's or skipped, every few seconds at most), and the next one is sent alone."""
-        if (not self.draining and edge_ok and st.edge_sends and math.isfinite(self._base_at)
+        detector's or skipped, once a ``base_period`` at most), and the next one is sent alone."""
+        if (not self.draining and edge_ok and st.edge_sends and not math.isnan(self._base_at)
                 and st.now - self._base_at > self.base_period):
             self.draining = True
             self.drains += 1
         if self.draining and (not edge_ok or not (st.edge_sends or st.send_waiting)):
             self.draining = False  # empty: this frame goes alone (or the edge is gone anyway)
+            self._base_at = st.now  # the next drain a base_period on, answered or not
         return self.draining
 
     def _to_edge(self, st: OffloadState) -> str:
@@ -382,9 +388,13 @@ class Dispatcher(Strategy):
         self.losses.add(1.0)
 
     def on_encoding_change(self) -> None:
-        """The delivered rate and frame size were of the other encoding: measured again."""
+        """The delivered rate, frame size and base latency were of the other encoding (its bytes
+        take the link longer or shorter): measured again, the base by a drain at the next frame."""
         self.delivered.samples.clear()
         self.frame_bytes = Ewma(self.frame_bytes.alpha)
+        self.base.samples.clear()
+        if not math.isnan(self._base_at):
+            self._base_at = -math.inf
 
     def _answered(self, reply: EdgeReply) -> None:
         self.blocked = False
@@ -394,7 +404,9 @@ class Dispatcher(Strategy):
         self.frame_bytes.add(reply.bytes)
         # The path apart from the edge's own time on this frame (its queue, its detector)
         edge_time = sum(x for x in (reply.service, reply.edge_queue) if math.isfinite(x))
-        fixed = max(0.0, reply.result - reply.sent - edge_time)
+        fixed = reply.result - reply.sent - edge_time
+        if fixed <= 0:  # not a time a frame can take (a clock stepped back): no sample
+            fixed = NAN
         self.fixed_latency.add(reply.result, fixed)
         if reply.alone:
             self.base.add(reply.result, fixed)

@@ -93,6 +93,7 @@ class FrameBook:
         self._probe_streak = 0
         self._last_probe = -float("inf")
         self._last_reply = -float("inf")
+        self._last_loss = -math.inf  # an edge frame or copy booked lost (it may still be on the link)
         self._lost_streak = 0
         self._last_answer = -math.inf  # the edge's last answer to a frame or copy in flight
         self._last_arrival = -math.inf  # when that frame reached the edge
@@ -142,8 +143,11 @@ class FrameBook:
     def sent(self, seq: int, now: float, probe: bool, copy: bool = False, edge: str = "") -> None:
         """The frame (or its copy) is handed to the sender: in flight, its timeout runs from now on.
         ``edge``: the edge asked to detect it ("" = any edge that hears it); only its answer counts."""
-        # Nothing ahead of it on the link or at the edge: its answer time is the path's base
-        self.records[seq].update(edge=edge, alone=int(not self.in_flight and not self.copies))
+        # Nothing ahead of it on the link or at the edge: its answer time is the path's base. Not
+        # after a loss until an answer came: a frame booked lost may still be in the sender or on
+        # the link
+        alone = not self.in_flight and not self.copies and self._last_loss <= self._last_reply
+        self.records[seq].update(edge=edge, alone=int(alone))
         if copy:
             self.records[seq].update(copy=1)
             self.copies[seq] = now
@@ -300,7 +304,8 @@ class FrameBook:
             if rec.get("trial"):  # the strategy sees a trial's time only: its size is not the others'
                 nbytes = rate = NAN
         return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,
-                         status=status, edge_queue=queued_at_edge, alone=bool(rec.get("alone")))
+                         status=status, edge_queue=queued_at_edge,
+                         alone=bool(rec.get("alone")) and not rec.get("trial"))  # a trial's bytes differ
 
     # Losses and fallback
     def expire(self, now: float) -> list[int]:
@@ -309,6 +314,7 @@ class FrameBook:
         for seq, sent in [(k, t) for k, t in self.copies.items() if now - t > self.rules.reply_timeout]:
             del self.copies[seq]
             self.counters["copies_lost"] += 1
+            self._last_loss = now
             self._encoding_lost(self.records[seq], now)
             self.strategy.on_edge_timeout(now - sent)
         overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.rules.reply_timeout]
@@ -348,10 +354,12 @@ class FrameBook:
         for seq in seqs:
             del self.copies[seq]
             self.counters["copies_lost"] += 1
+            self._last_loss = now
             self._encoding_lost(self.records[seq], now)
 
     def _book_lost(self, seq: int, now: float) -> None:
         self.in_flight.pop(seq, None)
+        self._last_loss = now
         self.finish(seq, "edge_lost")
         rec = self.records[seq]
         self._encoding_lost(rec, now)

@@ -2,10 +2,11 @@
 
 The first SIGINT/SIGTERM asks the daemon to stop gracefully (finish, flush results, close the
 session); a second one forces the exit with ``ExitCode.INTERRUPTED``. A graceful stop that has not
-finished ``shutdown_limit`` seconds after it began writes every thread's stack to stderr (the log)
-and exits with ``ExitCode.FAILURE``: a daemon asked to stop stops, and says where it was stuck.
-(Once in CI an edge hung in its shutdown after its robot had finished, at a point that left no log
-line; a supervisor's SIGKILL would have ended it without saying where.)
+finished ``shutdown_limit`` seconds after the signal (or after the shutdown began, when the daemon
+ends on its own) writes every thread's stack to stderr (the log) and exits with
+``ExitCode.FAILURE``: a daemon asked to stop stops, and says where it was stuck. (Once in CI an
+edge hung in its shutdown after its robot had finished, at a point that left no log line; a
+supervisor's SIGKILL would have ended it without saying where.)
 """
 
 from __future__ import annotations
@@ -29,10 +30,26 @@ def setup_logging(level: str | None = None) -> None:
     )
 
 
-SHUTDOWN_LIMIT = 20.0
-"""Seconds a daemon's shutdown may take (services stopped, maps exported, results written, session
-closed; a second or two normally) before it is cut short with a stack dump. An edge's drain on
-SIGTERM comes before it and has its own ``fleet.drain_timeout``."""
+SHUTDOWN_LIMIT = 60.0
+"""Seconds a daemon's stop may take (services stopped, maps exported, results written, session
+closed; a second or two normally) before it is cut short with a stack dump: above the sum of the
+waits the shutdown bounds itself (the ROS 2 mapper's 15 s, the detector's 5 s, each map worker's
+5 s) so a slow but finishing stop is not cut. ``ZOFFLOAD_SHUTDOWN_LIMIT`` (seconds) sets it: the
+system tests use 20, under their own 30 s kill. An edge's drain on SIGTERM comes before it and has
+its own ``fleet.drain_timeout``."""
+
+
+def shutdown_limit_env() -> float:
+    """``ZOFFLOAD_SHUTDOWN_LIMIT`` when set to a positive number of seconds, else ``SHUTDOWN_LIMIT``."""
+    raw = os.environ.get("ZOFFLOAD_SHUTDOWN_LIMIT", "")
+    try:
+        value = float(raw)
+    except ValueError:
+        if raw:
+            logging.getLogger("zoffload").warning("ZOFFLOAD_SHUTDOWN_LIMIT=%r is not a number: %g s",
+                                                  raw, SHUTDOWN_LIMIT)
+        return SHUTDOWN_LIMIT
+    return value if value > 0 and value != float("inf") else SHUTDOWN_LIMIT
 
 
 assert int(ExitCode.FAILURE) == 1  # faulthandler's exit code
@@ -41,9 +58,9 @@ assert int(ExitCode.FAILURE) == 1  # faulthandler's exit code
 class StopSignal:
     """An event set by the first SIGINT/SIGTERM; the second one exits immediately."""
 
-    def __init__(self, shutdown_limit: float = SHUTDOWN_LIMIT) -> None:
+    def __init__(self, shutdown_limit: float | None = None) -> None:
         self.event = threading.Event()
-        self.shutdown_limit = shutdown_limit
+        self.shutdown_limit = shutdown_limit if shutdown_limit is not None else shutdown_limit_env()
         self._count = 0
         self._installed = False  # this process's signals are ours: its shutdown is bounded
 
@@ -63,11 +80,19 @@ class StopSignal:
         if not self._installed:
             yield
             return
-        faulthandler.dump_traceback_later(self.shutdown_limit, exit=True)
+        self._arm()
         try:
             yield
         finally:
             faulthandler.cancel_dump_traceback_later()
+
+    def _arm(self) -> None:
+        """Start (or restart) the watchdog; one that cannot start (no stderr file) is logged, and the
+        stop goes on unbounded rather than not at all."""
+        try:
+            faulthandler.dump_traceback_later(self.shutdown_limit, exit=True)
+        except (RuntimeError, ValueError, OSError, AttributeError) as exc:
+            logging.getLogger("zoffload").warning("stop not bounded (no stack dump possible): %s", exc)
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         self._count += 1
@@ -75,6 +100,8 @@ class StopSignal:
             logging.getLogger("zoffload").warning("second signal: forcing exit")
             os._exit(int(ExitCode.INTERRUPTED))
         logging.getLogger("zoffload").info("%s received: stopping", signal.Signals(signum).name)
+        if self._installed:
+            self._arm()  # from the signal: a main loop that never reaches its shutdown is bounded too
         self.event.set()
 
     def is_set(self) -> bool:

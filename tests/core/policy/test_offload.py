@@ -200,9 +200,17 @@ def test_the_base_latency_comes_from_frames_sent_alone_and_a_drain_renews_it() -
     assert d.decide(_st(now=6.16, capture=6.16, edge_sends=((6.04, 1e6),), in_flight=1)) in (LOCAL, SKIP)
     # ... until none is in flight: the next frame goes alone, and its answer renews the base
     assert d.decide(_st(now=6.2, capture=6.2)) == EDGE and not d.draining and d.drains == 1
+    # while that frame is on its way the next ones go as usual: one drain, not one per frame
+    alone_out = {"edge_sends": ((6.2, 1e6),), "in_flight": 1}
+    assert d.decide(_st(now=6.24, capture=6.24, **alone_out)) == EDGE and d.drains == 1
     d.on_edge_result(0.1, EdgeReply(sent=6.2, result=6.3, bytes=1e6, service=0.04, delivery_rate=rate,
                                     alone=True))
     assert d.decide(_st(now=6.32, capture=6.32, **in_flight)) == EDGE and d.drains == 1
+    # frames of the other encoding take the link longer or shorter: the base is measured again, by
+    # a drain at the next frame
+    d.on_encoding_change()
+    assert not d.base.samples
+    assert d.decide(_st(now=6.36, capture=6.36, **in_flight)) in (LOCAL, SKIP) and d.drains == 2
 
 
 def test_frames_that_never_return_keep_the_dispatcher_local_the_thesis_rule_does_not() -> None:

@@ -249,6 +249,27 @@ def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:
     assert s.replies[-1].status == "dropped" and math.isnan(s.replies[-1].delivery_rate)
 
 
+def test_a_frame_is_sent_alone_only_with_nothing_unanswered_and_no_loss_since_the_last_answer() -> None:
+    """A frame booked lost may still be in the sender or on the link: the next one is not sent
+    alone (its answer would hold that wait) until an answer came; a trial frame's bytes are not the
+    others', so its answer is no base either."""
+    s = Scripted([EDGE] * 6)
+    b = book(s)
+    b.decide(0, 0, capture=0.0, now=0.0)
+    b.sent(0, 0.0, False)
+    assert b.expire(0.6) == [0]  # unanswered for the 0.5 s timeout: lost
+    b.decide(1, 1, capture=0.6, now=0.6)
+    b.sent(1, 0.6, False)  # nothing in flight, but the lost frame may still be on the link
+    assert b.records[1]["alone"] == 0
+    b.edge_result(1, "ok", 0.7, 0.04, 0.0, *NONE)
+    b.decide(2, 2, capture=0.72, now=0.72)
+    b.sent(2, 0.72, False)  # an answer since the loss: the path is clear
+    assert b.records[2]["alone"] == 1
+    b.records[2]["trial"] = 1  # the sender made it a trial of raw frames
+    b.edge_result(2, "ok", 0.8, 0.04, 0.0, *NONE)
+    assert not s.replies[-1].alone
+
+
 def test_a_frame_booked_lost_while_it_waits_for_the_link_is_not_booked_again() -> None:
     # Seen in the held-out sweep (mmWave link, dispatch): a blockage made the edge's token go, the
     # frame waiting in the sender's slot was booked lost with the others in flight, and when a newer
