@@ -285,7 +285,7 @@ class Dispatcher(Strategy):
         self._last_capture = st.capture
         edge_ok = st.edge_available and not self.blocked
         # Measure each side once before comparing them
-        if edge_ok and not self.fixed_latency.samples and not st.edge_sends:
+        if edge_ok and math.isnan(self._base_at) and not st.edge_sends:  # never answered yet
             return self._to_edge(st)
         if math.isnan(self.local_service.value) and not st.local_busy:
             return LOCAL
@@ -404,9 +404,10 @@ class Dispatcher(Strategy):
         self.frame_bytes.add(reply.bytes)
         # The path apart from the edge's own time on this frame (its queue, its detector)
         edge_time = sum(x for x in (reply.service, reply.edge_queue) if math.isfinite(x))
-        fixed = reply.result - reply.sent - edge_time
-        if fixed <= 0:  # not a time a frame can take (a clock stepped back): no sample
-            fixed = NAN
+        rtt = reply.result - reply.sent
+        # an edge time covering it all is a path too short to see (loopback): 0; a send-to-answer
+        # time that is not a time (the wall clock stepped back) is no sample
+        fixed = max(0.0, rtt - edge_time) if rtt > 0 else NAN
         self.fixed_latency.add(reply.result, fixed)
         if reply.alone:
             self.base.add(reply.result, fixed)
