@@ -285,7 +285,7 @@ class Dispatcher(Strategy):
         self._last_capture = st.capture
         edge_ok = st.edge_available and not self.blocked
         # Measure each side once before comparing them
-        if edge_ok and math.isnan(self._base_at) and not st.edge_sends:  # never answered yet
+        if edge_ok and self._last_answer == -math.inf and not st.edge_sends:  # never answered yet
             return self._to_edge(st)
         if math.isnan(self.local_service.value) and not st.local_busy:
             return LOCAL

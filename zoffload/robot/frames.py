@@ -311,11 +311,9 @@ class FrameBook:
     def expire(self, now: float) -> list[int]:
         """Book every edge frame unanswered for ``reply_timeout`` as lost; returns their seqs. An
         unanswered copy is only an observation."""
-        for seq, sent in [(k, t) for k, t in self.copies.items() if now - t > self.rules.reply_timeout]:
-            del self.copies[seq]
-            self.counters["copies_lost"] += 1
-            self._last_loss = now
-            self._encoding_lost(self.records[seq], now)
+        expired = [(k, t) for k, t in self.copies.items() if now - t > self.rules.reply_timeout]
+        self._drop_copies([seq for seq, _ in expired], now)
+        for _, sent in expired:
             self.strategy.on_edge_timeout(now - sent)
         overdue = [seq for seq, sent in self.in_flight.items() if now - sent > self.rules.reply_timeout]
         for seq in overdue:
@@ -349,8 +347,8 @@ class FrameBook:
         return lost
 
     def _drop_copies(self, seqs: list[int], now: float) -> None:
-        """Copies that will not be answered (their edge went, or the run ends): counted, and a
-        trial of raw frames among them is over."""
+        """Copies that will not be answered (timed out, their edge went, or the run ends): counted,
+        and a trial of raw frames among them is over."""
         for seq in seqs:
             del self.copies[seq]
             self.counters["copies_lost"] += 1

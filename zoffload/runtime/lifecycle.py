@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import faulthandler
 import logging
+import math
 import os
 import signal
 import threading
@@ -49,7 +50,7 @@ def shutdown_limit_env() -> float:
             logging.getLogger("zoffload").warning("ZOFFLOAD_SHUTDOWN_LIMIT=%r is not a number: %g s",
                                                   raw, SHUTDOWN_LIMIT)
         return SHUTDOWN_LIMIT
-    return value if value > 0 and value != float("inf") else SHUTDOWN_LIMIT
+    return value if math.isfinite(value) and value > 0 else SHUTDOWN_LIMIT
 
 
 assert int(ExitCode.FAILURE) == 1  # faulthandler's exit code
