@@ -62,6 +62,14 @@ def _run_to_the_end(port: int, tmp_path: Path, cfg: Path) -> tuple[Path, dict[st
     return run, json.loads((run / "vision_metrics.json").read_text())
 
 
+def _story(robot: Proc, what: str, t: float) -> str:
+    """What the robot saw of the edge and when (its log lines are time-stamped), for a failure."""
+    words = ("present", "gone", "fallback", "resumes", "held its put", "ERROR")
+    seen = "\n".join(line for line in robot.text().splitlines() if any(w in line for w in words))
+    stamp = time.strftime("%H:%M:%S", time.localtime(t)) + f",{int(t % 1 * 1e3):03d}"
+    return f"{what} at {stamp}:\n{seen}"
+
+
 def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before: str) -> tuple[Proc, Proc]:
     """An edge (detector only) and a robot with the settings ``cfg``, once the edge has answered 20
     of the robot's frames; both are stopped again when that does not happen."""
@@ -104,11 +112,7 @@ def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Pa
     assert falls, robot.text()
     print(f"fallback {1e3 * (falls[0]['start'] - t_kill):.0f} ms after the kill; offloading resumed "
           f"{falls[0]['end'] - t_restart:.2f} s after the restart")
-    # When it fails, say what the robot saw and when (its log lines are time-stamped)
-    words = ("present", "gone", "fallback", "resumes", "held its put", "ERROR")
-    seen = "\n".join(line for line in robot.text().splitlines() if any(w in line for w in words))
-    stamp = time.strftime("%H:%M:%S", time.localtime(t_kill)) + f",{int(t_kill % 1 * 1e3):03d}"
-    why = f"killed at {stamp}:\n{seen}"
+    why = _story(robot, "killed", t_kill)
     t_gone = t_kill  # when the robot could know
     if falls[0]["start"] - t_kill > 0.25:
         # The one known exception (robot/camera.py SLOW_PUT_S): the kill landed while Zenoh held a
@@ -179,7 +183,10 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     assert any(t_stop < p["start"] < t_cont and p["end"] > t_stop + 2.0 for p in spans), after(spans)
     # not before the lease ran out, not after the held put was let go (+ 250 ms)
     assert falls and t_stop + 1.5 < falls[0]["start"] < max(p["end"] for p in spans) + 0.25, after(falls)
-    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont  # resumed once it answered
+    # resumed once it answered (CI once saw no resume for the rest of the run, the robot's log not
+    # kept; a "gone" handed over after the new link's "present" would do that: the presence watcher
+    # re-checks every "gone" since, tests/daemon/robot/test_presence.py)
+    assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont, _story(robot, "stopped", t_stop)
 
 
 @pytest.mark.parametrize("mbps", [None, 40])

@@ -100,6 +100,7 @@ class RobotServer:
             values.update(p.status())
         values["edges"] = float(len(self.presence.edges))
         values["edge_messages_dropped"] = float(self.presence.drops.total())  # tokens and statuses
+        values["edge_rechecked"] = float(self.presence.rechecked)  # a late "gone" undone
         msg = wire.Status(source="robot", id=self.settings.robot_id, stamp=time.time(), values=values)
         try:
             if self._status_pub is not None:

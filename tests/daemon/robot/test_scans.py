@@ -40,12 +40,15 @@ def test_scans_are_acked_and_counters_balance(free_port: int, tmp_path: Path) ->
     s = m["scans"]
     assert s["mean_points_sent"] < s["mean_points_raw"]  # 5 cm voxels really reduce
     assert 0.02 < s["mean_T"] < 0.2 and s["mean_rtt_ms"] > 0
+    # a scan the source replaced before the loop took it (a busy machine: once in a suite run) is
+    # counted, not a row
+    taken = 25 - m["balance"]["dropped_source"]
     rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
-    assert len(rows) == 25 and all(float(r["voxel"]) == 0.05 for r in rows if r["status"] == "acked")
+    assert len(rows) == taken and all(float(r["voxel"]) == 0.05 for r in rows if r["status"] == "acked")
     assert json.loads((tmp_path / "robot_metrics.json").read_text())["balanced"] is True
     assert (tmp_path / "robot_config.yaml").exists()
     poses = np.load(tmp_path / "robot_poses.npz")
-    assert len(poses["gt_seqs"]) == 25 and len(poses["acked_seqs"]) == m["balance"]["acked"]
+    assert len(poses["gt_seqs"]) == taken and len(poses["acked_seqs"]) == m["balance"]["acked"]
 
 
 def test_without_an_edge_the_robot_keeps_running_and_counts(free_port: int) -> None:
