@@ -7,13 +7,11 @@ It also reads the edges' 1 Hz status (``<ns>/status/edge/*``: capacity, load, dr
 detector's free share) once for the whole robot and hands each valid one to its status listeners
 (the fleet link, the camera); malformed or foreign ones are counted here.
 
-Token news comes from Zenoh's callback threads, and when a link closes and reopens at once (the
-edge's lease ran out, the robot reconnected within milliseconds) the old link's "gone" and the new
-link's "present" are a few milliseconds apart on different threads. Changes are applied and told
-one at a time, and every "gone" is checked again: a liveliness query for that edge's token after
-0.25, 1 and 3 s. A token still there makes the edge present again (``rechecked``), so a "gone"
-that arrived after the "present" it should have preceded cannot leave the robot without its edge
-for the rest of the run.
+A "gone" is checked again: a liveliness query for that edge's token 0.25, 1 and 3 s later. A token
+still there makes the edge present again (``rechecked``, logged), so one lost or out-of-order token
+event (a link closed and reopened within milliseconds, as a frozen edge's does) cannot leave the
+robot without its edge for the rest of the run. Changes are applied and told to the listeners one
+at a time, so no listener sees an older set of edges after a newer one.
 """
 
 from __future__ import annotations
