@@ -98,18 +98,20 @@ class Ewma:
 
 
 class Recent:
-    """The last ``n`` samples no older than ``horizon`` seconds (the newest always kept)."""
+    """The last ``n`` samples no older than ``horizon`` seconds (the newest always kept, unless
+    ``keep_last`` is off: then none once all are older)."""
 
-    def __init__(self, n: int, horizon: float) -> None:
+    def __init__(self, n: int, horizon: float, keep_last: bool = True) -> None:
         self.samples: deque[tuple[float, float]] = deque(maxlen=n)
         self.horizon = horizon
+        self.keep = 1 if keep_last else 0
 
     def add(self, t: float, x: float) -> None:
         if math.isfinite(x):
             self.samples.append((t, x))
 
     def values(self, now: float) -> list[float]:
-        while len(self.samples) > 1 and now - self.samples[0][0] > self.horizon:
+        while len(self.samples) > self.keep and now - self.samples[0][0] > self.horizon:
             self.samples.popleft()
         return [x for _, x in self.samples]
 
@@ -164,7 +166,9 @@ class Dispatcher(Strategy):
     base_period: float = 20.0  # s without a frame sent alone before the edge path is drained for one
     draining: bool = False  # no edge frames until none is in flight: the next one measures the base
     drains: int = 0
-    delivered: Recent = field(default_factory=lambda: Recent(8, 3.0))
+    # Only frames that queued behind another give a sample: one kept for ever (frames then sent
+    # alone, as a low rate makes them) would hold a wrong rate in place; unknown, the spacing is r0
+    delivered: Recent = field(default_factory=lambda: Recent(8, 3.0, keep_last=False))
     cpu: CpuMeter = field(default_factory=CpuMeter)
     window: float = 4.0
     blocked: bool = False  # an edge frame went unanswered: no edge frames until an answer

@@ -297,15 +297,20 @@ class FrameBook:
         self._last_answer = now
         edge_time = sum(x for x in (service, queued_at_edge) if math.isfinite(x))
         self._last_arrival = now - edge_time  # when it reached the edge, near enough (robot clock)
+        # The strategy sees a trial's time only: its size is not the others'. Nor the size of a
+        # frame of the encoding just left (answered after the switch): its bytes, its rate and its
+        # path time would be taken for the new encoding's
+        other = bool(rec.get("trial"))
         if rec.get("encoding"):
-            if self.encodings.answered(rec["encoding"], bool(rec.get("trial")), sent, now, edge_time,
+            if self.encodings.answered(rec["encoding"], other, sent, now, edge_time,
                                        float(rec.get("encode_ms", NAN)) / 1e3, service, gap):
                 self._encoding_switched()
-            if rec.get("trial"):  # the strategy sees a trial's time only: its size is not the others'
+            other = other or rec["encoding"] != self.encodings.current
+            if other:
                 nbytes = rate = NAN
         return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, delivery_rate=rate,
                          status=status, edge_queue=queued_at_edge,
-                         alone=bool(rec.get("alone")) and not rec.get("trial"))  # a trial's bytes differ
+                         alone=bool(rec.get("alone")) and not other)
 
     # Losses and fallback
     def expire(self, now: float) -> list[int]:

@@ -155,12 +155,24 @@ def test_the_book_hides_a_trials_size_from_the_dispatcher_and_resets_it_on_a_swi
     b.sent(seq, t, False)
     assert b.encoding_for(seq, t) == (RAW, True)
     b.records[seq].update(bytes=1_220_000, encode_ms=0.5)
+    late = seq + 1  # a JPEG frame sent behind the trial, answered after the switch
+    b.decide(late, late, t + 0.01, t + 0.01)
+    b.sent(late, t + 0.01, False)
+    assert b.encoding_for(late, t + 0.01) == (JPEG, False)
+    b.records[late].update(bytes=100_000, encode_ms=5.0)
     bytes_before = d.frame_bytes.value
     b.edge_result(seq, "ok", t + 0.065, SERVICE, 0.0, *empty)  # 65 ms: 5 ms of link beyond a JPEG's
     assert b.encodings.current == RAW and b.encodings.switches == 1
     assert not d.delivered.samples and math.isnan(d.frame_bytes.value) and bytes_before < 200_000
+    # The JPEG frame's answer after the switch: neither its bytes nor the rate they imply (100 kB
+    # in the 25 ms since the trial's answer: 4 MB/s, a raw frame would "take" 0.3 s) nor its path
+    # time reach the dispatcher as the raw frames' (once, such a rate kept ours sending one raw
+    # frame in nine for a whole run)
+    b.edge_result(late, "ok", t + 0.09, SERVICE, 0.0, *empty)
+    assert b.records[late]["status"] == "edge_done"
+    assert not d.delivered.samples and math.isnan(d.frame_bytes.value) and not d.base.samples
     assert b.records[seq]["status"] == "edge_done"  # the trial frame is a frame like the others
-    assert b.summary()["encodings"]["now"] == RAW and b.counters["sent_jpeg"] == 16
+    assert b.summary()["encodings"]["now"] == RAW and b.counters["sent_jpeg"] == 17  # (16 + the late one)
 
 
 def test_other_strategies_ignore_the_encoding() -> None:
