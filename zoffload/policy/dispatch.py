@@ -98,20 +98,18 @@ class Ewma:
 
 
 class Recent:
-    """The last ``n`` samples no older than ``horizon`` seconds (the newest always kept, unless
-    ``keep_last`` is off: then none once all are older)."""
+    """The last ``n`` samples no older than ``horizon`` seconds (the newest always kept)."""
 
-    def __init__(self, n: int, horizon: float, keep_last: bool = True) -> None:
+    def __init__(self, n: int, horizon: float) -> None:
         self.samples: deque[tuple[float, float]] = deque(maxlen=n)
         self.horizon = horizon
-        self.keep = 1 if keep_last else 0
 
     def add(self, t: float, x: float) -> None:
         if math.isfinite(x):
             self.samples.append((t, x))
 
     def values(self, now: float) -> list[float]:
-        while len(self.samples) > self.keep and now - self.samples[0][0] > self.horizon:
+        while len(self.samples) > 1 and now - self.samples[0][0] > self.horizon:
             self.samples.popleft()
         return [x for _, x in self.samples]
 
@@ -166,9 +164,7 @@ class Dispatcher(Strategy):
     base_period: float = 20.0  # s without a frame sent alone before the edge path is drained for one
     draining: bool = False  # no edge frames until none is in flight: the next one measures the base
     drains: int = 0
-    # Only frames that queued behind another give a sample: one kept for ever (frames then sent
-    # alone, as a low rate makes them) would hold a wrong rate in place; unknown, the spacing is r0
-    delivered: Recent = field(default_factory=lambda: Recent(8, 3.0, keep_last=False))
+    delivered: Recent = field(default_factory=lambda: Recent(8, 3.0))
     cpu: CpuMeter = field(default_factory=CpuMeter)
     window: float = 4.0
     blocked: bool = False  # an edge frame went unanswered: no edge frames until an answer
@@ -192,11 +188,18 @@ class Dispatcher(Strategy):
     # Estimates
     def bottleneck(self, nbytes: float, now: float) -> float:
         """Seconds the edge path's bottleneck spends on a frame of ``nbytes``: the edge detector's
-        service time, or the bytes at the delivered rate, whichever is longer (NaN: not known)."""
+        service time, or the bytes at the delivered rate, whichever is longer (NaN: not known); at
+        most the base latency, which holds a whole frame's way through the path. (Only frames that
+        queued behind another give a rate sample, and the newest is kept: one far too low made
+        frames go one at a time, which gives no new sample, and held the edge at 0.7-1.7 s a frame
+        for a whole run.)"""
         rate = self.delivered.median(now)
         link = nbytes / rate if math.isfinite(rate) and rate > 0 and math.isfinite(nbytes) else NAN
         parts = [x for x in (self.edge_service.value, link) if math.isfinite(x)]
-        return max(parts) if parts else NAN
+        if not parts:
+            return NAN
+        r0 = self.r0(now)
+        return min(max(parts), r0) if math.isfinite(r0) and r0 > 0 else max(parts)
 
     def r0(self, now: float) -> float:
         """Send-to-answer time of a frame that queues behind none: the shortest recent one of the

@@ -332,27 +332,19 @@ def test_dispatch_is_the_default_and_takes_its_settings() -> None:
         make_strategy("fastest")
 
 
-def test_a_delivered_rate_no_frame_renews_expires_and_the_edge_comes_back() -> None:
-    """One low delivered-rate sample (0.7 MB/s for 0.5 MB frames: 0.7 s each at the bottleneck)
-    makes the edge look too slow for a fresh frame, so frames go to it one at a time, and a frame
-    sent alone gives no rate sample. The sample must not stay for ever: after its horizon the
-    spacing is the base latency again, and the edge takes frames (once it held a whole run at one
-    frame in nine)."""
+def test_a_delivered_rate_slower_than_a_lone_frame_does_not_hold_the_edge() -> None:
+    """One delivered-rate sample far too low (0.7 MB/s for 0.5 MB frames: 0.7 s each at the
+    bottleneck), while frames sent alone take 90 ms end to end: the bottleneck cannot take longer
+    than a lone frame's whole way, so the edge still takes a fresh frame. (Uncapped, the edge
+    looked too slow for any fresh frame, frames went one at a time, which gives no new rate
+    sample, and one run stayed so to its end: 113 edge frames of 1,250.)"""
     d = Dispatcher()
     d.on_local_result(0.15, service=0.15, cpu=0.03)
     d.on_local_result(0.15, service=0.15, cpu=0.03)
     for k in range(3):  # answers to frames sent alone: 90 ms, 50 of them the edge's
         d.on_edge_result(0.09, EdgeReply(sent=k, result=k + 0.09, bytes=5e5, service=0.05, alone=True))
     d.on_edge_result(0.09, EdgeReply(sent=3.0, result=3.09, bytes=5e5, service=0.05, delivery_rate=7e5))
-
-    def edge_in(now: float) -> float:
-        st = OffloadState(now=now, edge_available=True, capture=now, local_busy=True, local_busy_for=0.0)
-        d.decide(st)
-        return d.estimates[1] - now
-
-    assert edge_in(3.2) > 0.6  # past max_age: the edge is not an option for this frame
-    for k in range(4):  # frames alone, answered in 90 ms, no rate sample
-        d.on_edge_result(0.09, EdgeReply(sent=3.3 + 0.5 * k, result=3.39 + 0.5 * k, bytes=5e5,
-                                         service=0.05, alone=True))
-    assert math.isnan(d.delivered.median(6.2)) and not math.isnan(d.fixed_latency.min(60.0))
-    assert edge_in(6.2) < 0.2  # back to the base latency: the edge takes frames again
+    assert d.delivered.median(3.2) == 7e5 and d.r0(3.2) == pytest.approx(0.09)
+    assert d.bottleneck(5e5, 3.2) == pytest.approx(0.09)
+    st = OffloadState(now=3.2, edge_available=True, capture=3.2, local_busy=True, local_busy_for=0.0)
+    assert d.decide(st) == EDGE and d.estimates[1] - 3.2 < 0.2
