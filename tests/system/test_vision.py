@@ -225,8 +225,11 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
     assert all(f["encoding"] == "bgr8" for f in sent)
     if mbps is None:
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
-        last = frames[-100:]
-        assert sum(f["encoding"] == "bgr8" for f in last) >= 95, enc  # raw once the trial said so
+        # raw once the trial said so (a slow edge, ~60 ms a frame against the camera's 40, can drop
+        # the first trials and put the switch late in the run: CI once had 36 of the last 100 JPEG)
+        t_switch = enc["events"][-1]["t"]
+        after = [f for f in frames if float(f["send"]) > t_switch]
+        assert len(after) >= 20 and sum(f["encoding"] == "bgr8" for f in after) >= 0.95 * len(after), enc
         assert trials[-1]["sent_size"] == "416x416"  # shrunk to PicoDet's input once the edge said it
         assert float(trials[-1]["bytes"]) > 416 * 416 * 3  # and raw
     else:
