@@ -51,6 +51,10 @@ class _Check:
     events: int = 0  # token events for this edge since: a re-check answered across one is stale
     revived: bool = False  # a re-check found the token; the subscriber has not confirmed it yet
 
+    def due(self) -> float:
+        """When the next check is due (the last step's until it is applied)."""
+        return self.gone + RECHECK_AFTER[min(self.step, len(RECHECK_AFTER) - 1)]
+
 
 class EdgePresence:
     def __init__(self, keys: Keys) -> None:
@@ -170,8 +174,7 @@ class EdgePresence:
         while True:
             with self._wake:
                 while not self._stopping:
-                    due_at = min((c.gone + RECHECK_AFTER[min(c.step, last_step)] for c in self._due.values()),
-                                 default=None)
+                    due_at = min((c.due() for c in self._due.values()), default=None)
                     if due_at is not None and due_at <= time.monotonic():
                         break
                     self._wake.wait(60.0 if due_at is None else due_at - time.monotonic())
@@ -179,7 +182,7 @@ class EdgePresence:
                     return
                 now = time.monotonic()
                 due = [(edge, c.events, c.step >= last_step) for edge, c in self._due.items()
-                       if c.gone + RECHECK_AFTER[min(c.step, last_step)] <= now]
+                       if c.due() <= now]
                 for edge, _, _ in due:
                     self._due[edge].step += 1  # (the last step's check stays until it is applied)
                 session = self._session
