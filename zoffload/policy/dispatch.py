@@ -54,9 +54,17 @@ The robot's CPU is a server too: under a CPU quota the detector is paced (``loca
 use at most what the rest of the process leaves of ``cpu_share`` × quota (process CPU time minus
 the detector's own), instead of starving the camera and the frame sender. Even so, a quarter-core
 robot's detection (20 ms of CPU against a 25 ms quota per 100 ms period) stalls the whole process,
-sender included, for most of a period: the local side takes a frame only if that stall (its wall
-time less its CPU time) fits in the work the edge path's bottleneck already has queued, or the edge
-cannot take the frame in time anyway. A slow local measurement drifts back towards the detector's
+sender and answers included, for most of a period. A detector that stalls the robot so (its wall
+time less its CPU time over half a camera period) takes only the frames the edge cannot finish
+within ``max_age`` (the edge blocked, gone or too slow); one that does not (a robot with the CPU to
+spare) is the second server throughout. Before, the stalling detector also took a frame whenever
+its stall fitted in the work the edge path's bottleneck had queued, but the stall delayed the
+*following* sends all the same (Wi-Fi walk: the edge's frames spent 82-94 ms of their way outside
+the edge's queue and detector, against 51-52 ms with edge only). Interleaved runs, a quarter core,
+async AP50 on a noisy host, before -> after: held-out half, capped link 33.7 +- 2.1 -> 35.5 +- 3.6
+(3, 5 runs), Wi-Fi walk 29.3 +- 3.8 -> 32.6 +- 1.0 (3, 5), unconstrained 31.9 -> 33.0 (2, 2); tuning
+half, capped 46.5 -> 55.5 (4 pairs), Wi-Fi 46.1 -> 41.8 (3 pairs); the robot's CPU 24-25 % -> 19-22 %
+of a core. A slow local measurement drifts back towards the detector's
 CPU time while it is idle (half-life ``recover``), so one slow spell does not idle it for good.
 
 Losses: an edge frame unanswered within the reply timeout blocks the edge until an answer comes and
@@ -224,12 +232,11 @@ class Dispatcher(Strategy):
         busy = math.ceil(r0 / per_frame) if math.isfinite(r0) and per_frame > 0 else 1
         return max(1, min(int(self.window), busy + self.queue_frames))
 
-    def edge_finish(self, st: OffloadState) -> tuple[float, float]:
-        """When a frame sent now would be answered (inf when the edge was never measured), and how
-        long the edge path's bottleneck stays busy with the frames already sent."""
+    def edge_finish(self, st: OffloadState) -> float:
+        """When a frame sent now would be answered (inf when the edge was never measured)."""
         r0 = self.r0(st.now)
         if not math.isfinite(r0):
-            return math.inf, 0.0
+            return math.inf
         default_bytes = self.frame_bytes.value
         done = self._last_answer  # the bottleneck served that one last
         for sent, nbytes in st.edge_sends:
@@ -238,13 +245,9 @@ class Dispatcher(Strategy):
             if expected < st.now:  # overdue: assume it takes as long again as it is late already
                 expected = 2 * st.now - expected
             done = expected
-        # The bottleneck is done with the last frame sent a base latency less its own time before
-        # that frame's answer
-        per_frame = self.bottleneck(default_bytes, st.now)
-        ahead = max(0.0, done - r0 + (per_frame if math.isfinite(per_frame) else 0.0) - st.now)
         if st.send_waiting:  # the new frame takes the place of the one waiting for the link
-            return done, ahead
-        return max(st.now + r0, done + self.interval(default_bytes, st.now)), ahead
+            return done
+        return max(st.now + r0, done + self.interval(default_bytes, st.now))
 
     def local_time(self, now: float) -> float:
         """The local detector's service time, as measured, drifting back towards its CPU time (half
@@ -301,11 +304,10 @@ class Dispatcher(Strategy):
         # A side that would not start on this frame within a camera period would finish a later,
         # fresher frame just as soon: it does not take this one (just in time, not queued)
         options = []  # (kills a waiting frame, score, side)
-        f_edge, ahead = self.edge_finish(st) if edge_ok else (math.inf, 0.0)
-        # The local detector's stall must not starve an edge path that takes frames in time: it
-        # runs when the bottleneck has work queued for longer than the stall (give or take half a
-        # camera period, the soonest the next frame could need the sender), or the edge is no use
-        local_fits = f_edge > deadline or self.stall(st.now) <= ahead + 0.5 * period
+        f_edge = self.edge_finish(st) if edge_ok else math.inf
+        # A local detector that stalls the robot (beyond half a camera period, the soonest the next
+        # frame could need the sender) takes only frames the edge cannot finish in time
+        local_fits = f_edge > deadline or self.stall(st.now) <= 0.5 * period
         f_local, start = self.local_finish(st)
         if f_local <= deadline and start < st.now + self.slack * period and local_fits:
             options.append((st.local_waiting, f_local + self.local_bias, LOCAL))

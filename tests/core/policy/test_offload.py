@@ -294,27 +294,43 @@ def test_dispatch_paces_the_local_detector_within_the_cpu_quota() -> None:
     assert d.local_ready_at == -math.inf
 
 
-def test_a_quarter_core_robot_detects_only_when_its_stall_does_not_starve_the_edge() -> None:
-    """Under a CPU quota a local detection of 20 ms CPU takes 100 ms: the whole robot process,
-    frame sender included, waits 80 ms with it. That is fine while the link still has over 80 ms
-    of frames queued, not when the edge path would run dry."""
+def _stalling(cpu: float) -> Dispatcher:
+    """A dispatcher whose detector takes 100 ms of wall time and ``cpu`` of CPU, and whose edge
+    path is a link at 60 ms a frame, 110 ms for a frame alone."""
     d = make_strategy("dispatch", local_bias=0.0)
     assert isinstance(d, Dispatcher)
     for _ in range(3):  # (the first, at start-up, is no measure)
-        d.on_local_result(0.1, service=0.1, cpu=0.02)
-    assert d.stall(0.0) == pytest.approx(0.08)
+        d.on_local_result(0.1, service=0.1, cpu=cpu)
     d.on_edge_result(0.11, _reply(0.1, 0.21))
-    d.on_edge_result(0.11, _reply(0.3, 0.41, rate=1e6 / 0.06))  # a link at 60 ms a frame, 110 ms alone
+    d.on_edge_result(0.11, _reply(0.3, 0.41, rate=1e6 / 0.06))
     assert d.r0(0.41) == pytest.approx(0.11) and d.depth(0.41) == 3
-    # two frames just sent: the link has 110 ms of work ahead, the stall fits: local
+    return d
+
+
+def test_a_robot_whose_detector_stalls_it_detects_only_what_the_edge_cannot_finish_in_time() -> None:
+    """Under a CPU quota a local detection of 20 ms CPU takes 100 ms: the whole robot process,
+    frame sender included, waits 80 ms with it and delays the frames after it. Such a detector
+    takes only the frames the edge cannot finish in time; one that does not stall the robot is a
+    second server whenever it finishes sooner."""
     t = 0.5
     queued = {"edge_sends": ((t - 0.01, 1e6), (t - 0.005, 1e6)), "in_flight": 2}
+    d = _stalling(cpu=0.02)
+    assert d.stall(0.0) == pytest.approx(0.08)
+    # two frames just sent, the local detector would finish sooner: the edge takes the frame
+    assert d.decide(_st(now=t, capture=t, **queued)) == EDGE
+    # the edge path's window full, the edge would still finish a frame in time: skipped, not local
+    full = tuple((t - 0.01 + 0.001 * k, 1e6) for k in range(4))
+    assert d.decide(_st(now=t, capture=t, edge_sends=full, in_flight=4)) == SKIP
+    # the edge stopped answering: the local detector takes the frames
+    d.on_edge_timeout(0.5)
+    assert d.decide(_st(now=t + 0.01, capture=t + 0.01)) in (LOCAL, BOTH)
+    # the same set-up with a detector that does not stall the robot: local, being sooner
+    d = _stalling(cpu=0.1)
+    assert d.stall(0.0) == 0.0
     assert d.decide(_st(now=t, capture=t, **queued)) == LOCAL
-    # one frame on its way, due in 60 ms: a detection now would idle the link, the edge takes it
-    d.on_edge_result(0.15, _reply(0.4, 0.55, rate=1e6 / 0.06))
-    t = 0.6
-    assert d.decide(_st(now=t, capture=t, edge_sends=((t - 0.05, 1e6),), in_flight=1)) == EDGE
-    # the detector idle for a few seconds, its slow measurement has faded: it is used again
+    # a stalling detector idle for a few seconds: its slow measurement has faded, it is used again
+    d = _stalling(cpu=0.02)
+    assert d.decide(_st(now=t, capture=t, **queued)) == EDGE  # (the detector's last result timed here)
     assert d.local_time(t + 5.0) == pytest.approx(0.02, abs=0.005)
     assert d.decide(_st(now=t + 5.0, capture=t + 5.0)) in (LOCAL, BOTH)
 
