@@ -267,3 +267,41 @@ def test_two_linked_routers_carry_a_robot_and_an_edge_and_keep_forgeries_out(
         for p in reversed(procs):  # the robot, then the edge
             p.sigint()
         assert d.stop() == 0
+
+
+def test_an_edge_sees_the_other_edges_status_and_liveliness_through_the_acl(free_port: int,
+                                                                               tmp_path: Path) -> None:
+    """An edge sheds a robot only when another *live* edge announces room: through the secure
+    router it must receive the other edges' status and their tokens' going (before, the ACL let
+    neither through, so an edge under the ACL never knew of another's room)."""
+    d = deploy(tmp_path, free_port, ["robot1"], ["edge1", "edge2"])
+    sessions: list[zenoh.Session] = []
+    try:
+        edge1 = open_session(d.settings("edge1"))
+        edge2 = open_session(d.settings("edge2"))
+        sessions += [edge1, edge2]
+        statuses: list[str] = []
+        tokens: list[tuple[str, str]] = []
+        edge2.declare_subscriber(KEYS.all_edge_status(), lambda s: statuses.append(str(s.key_expr)))
+        edge2.liveliness().declare_subscriber(
+            KEYS.any_edge_alive(), lambda s: tokens.append((str(s.key_expr), str(s.kind))), history=True)
+        token = edge1.liveliness().declare_token(KEYS.edge_alive("edge1"))
+        status = wire.encode(wire.Status(source="edge", id="edge1", stamp=time.time(),
+                                         values={"capacity": 4.0}))
+        wait_for(lambda: bool(tokens), 10, "edge1's token seen by edge2")
+        edge1.put(KEYS.edge_status("edge1"), status)
+        wait_for(lambda: bool(statuses), 10, "edge1's status received by edge2")
+        token.undeclare()
+        wait_for(lambda: any("DELETE" in kind for _, kind in tokens), 10, "edge1's token going seen by edge2")
+        assert all(key == KEYS.edge_alive("edge1") for key, _ in tokens)
+        # a robot's identity still cannot speak for an edge
+        robot = open_session(d.settings("robot1"))
+        sessions.append(robot)
+        n = len(statuses)
+        robot.put(KEYS.edge_status("edge1"), status)
+        time.sleep(1.0)
+        assert len(statuses) == n
+    finally:
+        for session in sessions:
+            session.close()
+        assert d.stop() == 0

@@ -264,16 +264,32 @@ def behind(late_share: float, limit: float = 0.05) -> bool:
 class Peers:
     """The other edges' room, from their 1 Hz status (capacity, robots, draining, late share). An
     edge that is itself behind (more than ``late_limit`` of its scans answered late) has no room,
-    whatever its count says: shedding to it would only move the overload and bounce robots back."""
+    whatever its count says: shedding to it would only move the overload and bounce robots back.
+    An edge whose liveliness token went (``gone``) has none either, from that moment until its token
+    is back (``back``): its last status stays fresh for ``PEER_FRESH`` seconds, and an edge that
+    shed a robot into it then (a CI run: shed 1.1 s after the other edge was killed) left the robot
+    on its own odometry with no edge to go to."""
 
     def __init__(self, edge_id: str, late_limit: float = 0.05) -> None:
         self.edge_id = edge_id
         self.late_limit = late_limit
         # edge -> capacity, robots, draining or behind, when heard
         self.seen: dict[str, tuple[float, float, bool, float]] = {}
+        self.dead: set[str] = set()  # token gone, not back yet: their statuses say nothing
+
+    def gone(self, edge: str) -> None:
+        """The edge's liveliness token went: no room there, whatever it said last."""
+        self.seen.pop(edge, None)
+        if edge != self.edge_id and (edge in self.dead or len(self.dead) < MAX_PEERS):
+            self.dead.add(edge)
+
+    def back(self, edge: str) -> None:
+        """The edge's token is (again) there: its statuses count."""
+        self.dead.discard(edge)
 
     def update(self, edge: str, values: dict[str, float], now: float) -> None:
-        if edge == self.edge_id or (edge not in self.seen and len(self.seen) >= MAX_PEERS):
+        if (edge == self.edge_id or edge in self.dead
+                or (edge not in self.seen and len(self.seen) >= MAX_PEERS)):
             return
         busy = values.get("draining", 0.0) > 0 or behind(values.get("late_share", 0.0), self.late_limit)
         self.seen[edge] = (values.get("capacity", 0.0), values.get("robots", 0.0), busy, now)

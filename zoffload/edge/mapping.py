@@ -51,7 +51,7 @@ from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, Queued, R
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, robot_in_key
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import ID, Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
@@ -102,6 +102,7 @@ class MappingService:
         self._attach_q: zenoh.Queryable[None] | None = None
         self.peers = Peers(edge_id, self.fleet.shed_late)
         self._peers_sub: zenoh.Subscriber[None] | None = None
+        self._peers_alive: zenoh.Subscriber[None] | None = None
 
     def start(self, session: zenoh.Session) -> None:
         if self.make_mapper is not None:
@@ -118,6 +119,10 @@ class MappingService:
             # the other edges' room: a robot is shed only when another edge can take it
             self._peers_sub = session.declare_subscriber(
                 self.keys.all_edge_status(), self.attach_drops.guard(self._on_peer, "edge status"))
+            # and whether they are alive: a dead edge's last status stays fresh for seconds
+            self._peers_alive = session.liveliness().declare_subscriber(
+                self.keys.any_edge_alive(), self.attach_drops.guard(self._on_peer_token, "edge token"),
+                history=True)
 
     def _on_peer(self, sample: zenoh.Sample) -> None:
         st = edge_status(sample, self.keys, self.attach_drops)
@@ -125,11 +130,22 @@ class MappingService:
             with self._lock:
                 self.peers.update(st.id, st.values, time.monotonic())
 
+    def _on_peer_token(self, sample: zenoh.Sample) -> None:
+        edge = self.keys.last_chunk(str(sample.key_expr))
+        if not ID.match(edge):
+            self.attach_drops.drop("bad_edge_token", f"edge token {str(sample.key_expr)[:100]!r}")
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.peers.gone(edge)
+            else:
+                self.peers.back(edge)
+
     def stop(self) -> None:
         # No new scans first: one queued after the workers stop would never be acked. The map
         # queryable and the ack publishers go with the session, so maps are served to the end.
-        undeclare(self._sub, self._attach_q, self._peers_sub)
-        self._sub = self._attach_q = self._peers_sub = None
+        undeclare(self._sub, self._attach_q, self._peers_sub, self._peers_alive)
+        self._sub = self._attach_q = self._peers_sub = self._peers_alive = None
         self._stop.set()
         with self._lock:
             self._lock.notify_all()

@@ -12,7 +12,8 @@ egress: to it) and every rule key including the message's key (Zenoh checks incl
 * edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
   checkpoints for any robot and its own ``status/edge/E``; declare and answer the
   ``ctrl/*/map|ping`` queryables and its own ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
-  ``alive/robot/*``. An edge cannot answer another edge's attach queries.
+  ``alive/robot/*`` and ``alive/edge/*``, and receive the other edges' status (``status/edge/*``:
+  whether one has room for a robot it sheds). An edge cannot answer another edge's attach queries.
 * monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
   ``alive/**``; never put.
 * router P (another router linked to this one, holding P's certificate): what its robots' and
@@ -83,8 +84,11 @@ def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
         _rule(f"edge_{e}_reply", "ingress", ["reply"], ctrl),
         _rule(f"edge_{e}_token", "ingress", ["liveliness_token"], [k.edge_alive(e)]),
         _rule(f"edge_{e}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
-              [k.any_robot_alive()]),
-        _rule(f"edge_{e}_robots", "egress", ["liveliness_token"], [k.any_robot_alive()]),
+              [k.any_robot_alive(), k.any_edge_alive()]),
+        _rule(f"edge_{e}_robots", "egress", ["liveliness_token"], [k.any_robot_alive(), k.any_edge_alive()]),
+        # the other edges' room and liveliness: a robot is shed only when another live edge can take it
+        _rule(f"edge_{e}_peers", "ingress", ["declare_subscriber"], [k.all_edge_status()]),
+        _rule(f"edge_{e}_peers_rx", "egress", ["put"], [k.all_edge_status()]),
     ]
 
 

@@ -153,6 +153,31 @@ def test_no_shedding_into_a_full_fleet() -> None:
     assert g.to_shed(now, 2, peers.room_elsewhere(now)) == "r3"
 
 
+def test_a_dead_edge_has_no_room_from_the_moment_its_token_goes() -> None:
+    """Its last status stays fresh for PEER_FRESH seconds; an edge that shed a robot into it then
+    (a CI run: 1.1 s after the other edge was killed) left the robot with no edge to go to."""
+    g = fleet(capacity=3)
+    for i, r in enumerate(["r1", "r2", "r3"]):
+        g.attach(r, 1, float(i))
+    now = window(g, busy_per_s=1.95, drops=True)
+    peers = Peers("e1")
+    peers.update("e2", {"capacity": 4, "robots": 1}, now)
+    assert peers.room_elsewhere(now)
+    peers.gone("e2")
+    assert not peers.room_elsewhere(now) and g.to_shed(now, 2, peers.room_elsewhere(now)) is None
+    peers.update("e2", {"capacity": 4, "robots": 1}, now + 0.1)  # a status sent before it died
+    assert not peers.room_elsewhere(now + 0.1)
+    peers.back("e2")  # restarted: its token is there again, and its next status counts
+    assert not peers.room_elsewhere(now + 0.2)
+    peers.update("e2", {"capacity": 4, "robots": 0}, now + 0.2)
+    assert peers.room_elsewhere(now + 0.2) and g.to_shed(now + 0.2, 2, True) == "r3"
+    peers.gone("e1")  # our own token (at shutdown) changes nothing
+    assert "e1" not in peers.dead
+    for i in range(300):  # a flood of tokens from names never seen: bounded
+        peers.gone(f"x{i}")
+    assert len(peers.dead) <= 256
+
+
 def checkpoint(robot: str = "r1", seq: int = 10, pose: np.ndarray | None = None) -> wire.Checkpoint:
     return wire.Checkpoint(robot=robot, edge="e0", epoch=1, seq=seq, stamp=1.0, voxel_size=0.5,
                            max_range=40.0, min_range=0.0, max_points_per_voxel=20,

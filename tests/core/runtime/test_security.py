@@ -60,6 +60,12 @@ def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() ->
     assert allowed(acl, "edge_edge1", "ingress", "declare_queryable", k.all_pings())
     assert allowed(acl, "edge_edge1", "ingress", "liveliness_token", k.edge_alive("edge1"))
     assert not allowed(acl, "edge_edge1", "ingress", "liveliness_token", k.edge_alive("edge2"))
+    # the other edges' room and liveliness (an edge sheds a robot only to a live edge with room)
+    assert allowed(acl, "edge_edge1", "ingress", "declare_subscriber", k.all_edge_status())
+    assert allowed(acl, "edge_edge1", "egress", "put", k.edge_status("edge2"))
+    assert allowed(acl, "edge_edge1", "ingress", "declare_liveliness_subscriber", k.any_edge_alive())
+    assert allowed(acl, "edge_edge1", "egress", "liveliness_token", k.edge_alive("edge2"))
+    assert not allowed(acl, "edge_edge1", "ingress", "put", k.edge_status("edge2"))
     # the monitor only reads
     assert allowed(acl, "monitor_mon", "egress", "put", k.edge_status("edge1"))
     assert not any("put" in r["messages"] and "ingress" in r["flows"] for r in rules_of(acl, "monitor_mon"))
