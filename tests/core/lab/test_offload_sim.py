@@ -18,10 +18,14 @@ def _run(strategy: str, quota: float = 0.25, seed: int = 0) -> tuple[int, int]:
 
 
 def test_on_a_capped_link_a_fixed_ratio_queues_frames_the_dispatcher_keeps_them_fresh() -> None:
+    """The quarter-core robot's detector stalls the whole process, so ours leaves to the edge the
+    frames it finishes in time: it processes fewer frames than ratio 0.9, which runs the detector
+    beside a healthy edge (here 0.90 of them; 0.95 and more before that rule), but three times as
+    many within 250 ms of capture."""
     for seed in (0, 1):
         ratio_done, ratio_fresh = _run("ratio:0.9", seed=seed)
         ours_done, ours_fresh = _run("dispatch", seed=seed)
-        assert ours_done >= 0.95 * ratio_done  # as many frames through both sides ...
+        assert ours_done >= 0.85 * ratio_done  # nearly as many frames through ...
         assert ours_fresh >= 3 * ratio_fresh  # ... but not queued in the link's buffers
 
 
