@@ -364,3 +364,15 @@ def test_a_delivered_rate_slower_than_a_lone_frame_does_not_hold_the_edge() -> N
     assert d.bottleneck(5e5, 3.2) == pytest.approx(0.09)
     st = OffloadState(now=3.2, edge_available=True, capture=3.2, local_busy=True, local_busy_for=0.0)
     assert d.decide(st) == EDGE and d.estimates[1] - 3.2 < 0.2
+
+
+def test_a_frame_the_edge_replaced_with_a_newer_one_is_not_a_loss() -> None:
+    """The edge keeps two waiting frames per robot and answers the older ``dropped`` when a newer
+    one comes, serving the newer: no loss, and the window of frames in flight stays. An error
+    is a loss."""
+    d = _measured()
+    window = d.window
+    d.on_edge_refused(EdgeReply(sent=1.0, result=1.01, bytes=1e6, service=math.nan, status="dropped"), 0.5)
+    assert d.window == window and d.losses.value == 0.0 and not d.blocked
+    d.on_edge_refused(EdgeReply(sent=1.0, result=1.02, bytes=1e6, service=math.nan, status="error"), 0.5)
+    assert d.losses.value > 0.0
