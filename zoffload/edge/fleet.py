@@ -280,7 +280,7 @@ class Peers:
     def gone(self, edge: str) -> None:
         """The edge's liveliness token went: no room there, whatever it said last."""
         self.seen.pop(edge, None)
-        if edge != self.edge_id and (edge in self.dead or len(self.dead) < MAX_PEERS):
+        if edge != self.edge_id and len(self.dead) < MAX_PEERS:
             self.dead.add(edge)
 
     def back(self, edge: str) -> None:

@@ -50,8 +50,8 @@ from zoffload.edge.fleet import MAP, OTHER, Fleet, Peers, check_attach, peek_rou
 from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, Queued, RobotSession
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
-from zoffload.protocol.intake import edge_status, robot_in_key
-from zoffload.protocol.keys import ID, Keys
+from zoffload.protocol.intake import edge_status, edge_token, robot_in_key
+from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
@@ -131,9 +131,8 @@ class MappingService:
                 self.peers.update(st.id, st.values, time.monotonic())
 
     def _on_peer_token(self, sample: zenoh.Sample) -> None:
-        edge = self.keys.last_chunk(str(sample.key_expr))
-        if not ID.match(edge):
-            self.attach_drops.drop("bad_edge_token", f"edge token {str(sample.key_expr)[:100]!r}")
+        edge = edge_token(sample, self.keys, self.attach_drops)
+        if edge is None:
             return
         with self._lock:
             if sample.kind == zenoh.SampleKind.DELETE:

@@ -1,14 +1,15 @@
 """Intake of messages from the network: decode within the receiver's limits, check the sender
 named in the key, and count every message refused as a drop (``runtime.drops.Drops``: counted by
 reason, the log rate-limited) instead of a log line each. A robot's scans and frames on the edge;
-the edges' status wherever it is read (the robot's fleet link and camera, the edge's peers)."""
+the edges' status and liveliness tokens wherever they are read (the robot's fleet link and camera,
+the edge's peers)."""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from zoffload.protocol import wire
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import ID, Keys
 
 if TYPE_CHECKING:
     import zenoh
@@ -59,3 +60,13 @@ def edge_status(sample: zenoh.Sample, keys: Keys, drops: DropCounter) -> wire.St
         drops.drop("foreign_status", f"status of {msg.source} {msg.id!r} on {str(sample.key_expr)[:100]}")
         return None
     return msg
+
+
+def edge_token(sample: zenoh.Sample, keys: Keys, drops: DropCounter) -> str | None:
+    """The edge id a liveliness sample on ``keys.any_edge_alive()`` names, or None after counting a
+    ``bad_token`` drop (the sample's kind says whether the token came or went)."""
+    edge = keys.last_chunk(str(sample.key_expr))
+    if not ID.match(edge):
+        drops.drop("bad_token", f"edge token {str(sample.key_expr)[:100]!r}")
+        return None
+    return edge

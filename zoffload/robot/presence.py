@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import zenoh
 
 from zoffload.protocol import wire
-from zoffload.protocol.intake import edge_status
-from zoffload.protocol.keys import ID, Keys
+from zoffload.protocol.intake import edge_status, edge_token
+from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
@@ -122,9 +122,8 @@ class EdgePresence:
             listener(msg)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        edge = self.keys.last_chunk(str(sample.key_expr))
-        if not ID.match(edge):
-            self.drops.drop("bad_token", f"edge token {str(sample.key_expr)[:100]!r}")
+        edge = edge_token(sample, self.keys, self.drops)
+        if edge is None:
             return
         present = sample.kind == zenoh.SampleKind.PUT
         with self._change:
