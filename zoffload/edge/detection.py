@@ -23,11 +23,18 @@ Counters: every sample is counted once as ``samples`` and ends in exactly one of
 The Zenoh callback only decodes, checks sizes and queues; one inference thread serves all robots.
 Sizes are checked before any pixel is decoded: the declared width x height against the pixel cap,
 a raw frame's byte count, and a JPEG's own frame header (read from its SOF marker) against the
-declared size, so a small JPEG claiming a huge image never reaches the decoder. When frames queue
-up the thread takes up to ``batch`` of them in one pass, oldest first across robots, and serves
-them back to back (the three shipped models have a fixed batch dimension of 1, so a pass is a
-loop, not one tensor); every answer says how many frames shared its pass. Each robot keeps at most
-``queue`` waiting frames; the oldest is answered ``dropped`` when a newer one comes.
+declared size, so a small JPEG claiming a huge image never reaches the decoder. Each robot keeps
+at most ``queue`` waiting frames; the oldest is answered ``dropped`` when a newer one comes.
+
+A pass takes up to ``batch`` robots' frames, the robot waiting longest first, and serves them back
+to back (the three shipped models have a fixed batch dimension of 1, so a pass is a loop, not one
+tensor); every answer says how many frames shared its pass. ``serve="newest"`` (the default)
+takes each robot's *newest* waiting frame and answers its older ones ``dropped`` at once
+(``superseded``): their results would reach the robot after the newer frame's, stale on arrival,
+and serving the older first delays the newer by a whole inference. A detector behind its camera
+so serves the freshest frame it has instead of the one that waited longest. ``serve="oldest"`` is
+first in, first out: up to ``batch`` frames oldest first across robots, two of one robot's in one
+pass (the thesis' edge, and this one before).
 """
 
 from __future__ import annotations
@@ -149,12 +156,16 @@ class DetectorService:
     name = "detector"
 
     def __init__(self, detector: Detector, keys: Keys, edge_id: str, queue: int = 2, batch: int = 4,
-                 admission: Admission | None = None, limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
+                 admission: Admission | None = None, limits: wire.Limits = wire.DEFAULT_LIMITS,
+                 serve: str = "newest") -> None:
+        if serve not in ("newest", "oldest"):
+            raise ValueError(f"serve must be 'newest' or 'oldest', not {serve!r}")
         self.detector = detector
         self.keys = keys
         self.edge_id = edge_id
         self.queue_len = queue
         self.batch = batch
+        self.serve = serve
         self.admission = admission or Admission()
         self.limits = limits
         self.counters: Counter[str] = Counter()
@@ -266,17 +277,32 @@ class DetectorService:
                               congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def _take(self) -> list[_Pending]:
-        """Up to ``batch`` queued frames, oldest first across robots."""
+        """This pass's frames (module docstring): up to ``batch`` robots' newest, the robot waiting
+        longest first, their older frames answered ``dropped``; or (``serve="oldest"``) up to
+        ``batch`` frames, oldest first across robots."""
+        superseded: list[_Pending] = []
         with self._cond:
             while not self._stop.is_set() and not any(self._pending.values()):
                 self._cond.wait(0.2)
-            items = [p for q in self._pending.values() for p in q]
-            items.sort(key=lambda p: p.arrival)
-            taken = items[: self.batch]
-            for p in taken:
-                self._pending[p.frame.robot].remove(p)
+            if self.serve == "newest":
+                queues = sorted((q for q in self._pending.values() if q), key=lambda q: q[0].arrival)
+                taken = []
+                for q in queues[: self.batch]:
+                    taken.append(q.pop())
+                    superseded.extend(q)
+                    q.clear()
+                self.counters["dropped"] += len(superseded)
+                self.counters["superseded"] += len(superseded)
+            else:
+                items = [p for q in self._pending.values() for p in q]
+                items.sort(key=lambda p: p.arrival)
+                taken = items[: self.batch]
+                for p in taken:
+                    self._pending[p.frame.robot].remove(p)
             self._in_pass += len(taken)
-            return taken
+        for p in superseded:
+            self._reply(p, "dropped", detail="superseded by a newer frame of this robot")
+        return taken
 
     def _work(self) -> None:
         while not self._stop.is_set():

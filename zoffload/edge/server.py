@@ -115,7 +115,7 @@ def detector_service(settings: EdgeSettings, keys: Keys,
             raise
         log.warning("object detector off: %s", exc)
         return None
-    return DetectorService(model, keys, settings.edge_id, queue=d.queue, batch=d.batch,
+    return DetectorService(model, keys, settings.edge_id, queue=d.queue, batch=d.batch, serve=d.serve,
                            admission=admitted or admission(settings), limits=wire_limits(settings.limits))
 
 

@@ -13,8 +13,10 @@ driven on a simulated clock (1 ms steps) against models of what they decide over
   (``link_queue`` seconds of transmission, as ``zoffload link --queue-ms``); a put blocks while that
   queue is full (Zenoh's BLOCK congestion control on a small send buffer);
 * the edge: a queue of ``edge_queue`` frames per robot (the oldest answered ``dropped``) in front
-  of one detector with a random service time, slowed while the robot's detector runs (robot and
-  edge share the development machine's two cores).
+  of one detector with a random service time, which takes the newest waiting frame and answers the
+  older ones ``dropped`` (``edge_serve="newest"``, the edge's default) or the oldest (``"oldest"``),
+  slowed while the robot's detector runs (robot and edge share the development machine's two
+  cores).
 
 Detections are the real detectors' outputs on the clip frames, computed once and cached
 (``clip_detections``), scored as ``lab/eval/detection.py`` scores a run (asynchronous AP50: each
@@ -59,6 +61,7 @@ class SimConfig:
     edge_service: float = 0.045  # s, median edge detection (one thread, as the experiments run it)
     edge_sigma: float = 0.2
     edge_queue: int = 2
+    edge_serve: str = "newest"  # which waiting frame the edge's detector takes (edge/detection.py)
     edge_slowdown: float = 0.1  # the edge detector runs this much slower while the robot's runs
     reply_timeout: float = 0.5
     link_queue: float = 0.1  # s of transmission the emulator queues before it stops reading
@@ -218,7 +221,13 @@ class Simulation:
                     dropped, _ = edge.queue.popleft()
                     to_robot.append((t + state.delay_ms / 1e3, dropped, "dropped", math.nan, math.nan))
             if edge.busy is None and edge.queue:
-                seq, arrived = edge.queue.popleft()
+                if cfg.edge_serve == "newest":
+                    seq, arrived = edge.queue.pop()
+                    for older, _ in edge.queue:
+                        to_robot.append((t + state.delay_ms / 1e3, older, "dropped", math.nan, math.nan))
+                    edge.queue.clear()
+                else:
+                    seq, arrived = edge.queue.popleft()
                 service = self._lognormal(cfg.edge_service, cfg.edge_sigma)
                 edge.busy = (seq, t + service, service, t - arrived)
             if edge.busy is not None:

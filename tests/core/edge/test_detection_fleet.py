@@ -152,7 +152,8 @@ def test_every_sample_is_counted_once_whatever_happens_to_it() -> None:
     b = svc.balance()
     assert svc.balanced(), b
     assert b["samples"] == 18 and b["other_edge"] == 4 and b["received"] == 10
-    assert b["dropped"] == 6 and b["served"] == 2 and b["errors"] == 1 and b["evicted"] == 1
+    # r1's two waiting frames: the newer served, the older superseded (answered dropped)
+    assert b["dropped"] == 7 and b["served"] == 1 and b["errors"] == 1 and b["evicted"] == 1
     assert b["drops"] == 4 and b["queued"] == 0 and b["in_pass"] == 0
     answers = [wire.decode(d, expect=wire.Detections) for k, d in session.sent if k.endswith("detections")]
     assert all(a.edge == "edge1" for a in answers)
@@ -170,3 +171,34 @@ def test_status_says_how_free_the_detector_is() -> None:
     assert svc.busy_share(now) == pytest.approx(2.5 / BUSY_WINDOW)
     values = svc.status()
     assert 0.4 < values["detector.free"] < 0.6 and values["detector.queued"] == 0
+
+
+def test_a_pass_serves_each_robots_newest_frame_and_supersedes_the_older() -> None:
+    svc, session = service(queue=3, admission=Admission(max_robots=3))
+    put(svc, wire.encode(frame("r2", 7)), robot="r2")
+    for seq in (1, 2, 3):
+        put(svc, wire.encode(frame("r1", seq)))
+    put(svc, wire.encode(frame("r3", 5)), robot="r3")
+    svc.batch = 2  # two robots a pass: r2 and r1 waited longest, r3 waits for the next
+    taken = svc._take()
+    assert [(p.frame.robot, p.frame.seq) for p in taken] == [("r2", 7), ("r1", 3)]
+    answers = [wire.decode(d, expect=wire.Detections) for k, d in session.sent if k.endswith("detections")]
+    assert [(a.seq, a.status) for a in answers] == [(1, "dropped"), (2, "dropped")]
+    assert all("superseded" in a.detail for a in answers)
+    assert svc.counters["superseded"] == 2 and svc.balanced(), svc.balance()
+    for p in taken:
+        svc._serve(p, len(taken))
+    assert [(p.frame.robot, p.frame.seq) for p in svc._take()] == [("r3", 5)]
+    assert svc.balance()["in_pass"] == 1 and svc.balanced()
+
+
+def test_first_in_first_out_takes_the_oldest_frames_across_robots() -> None:
+    svc, session = service(queue=3, admission=Admission(max_robots=2), serve="oldest")
+    put(svc, wire.encode(frame("r1", 1)))
+    put(svc, wire.encode(frame("r2", 7)), robot="r2")
+    put(svc, wire.encode(frame("r1", 2)))
+    svc.batch = 2
+    assert [(p.frame.robot, p.frame.seq) for p in svc._take()] == [("r1", 1), ("r2", 7)]
+    assert session.sent == [] and svc.counters["superseded"] == 0 and svc.balanced()
+    with pytest.raises(ValueError, match="serve"):
+        service(serve="latest")

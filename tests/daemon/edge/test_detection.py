@@ -98,7 +98,10 @@ def test_frames_are_sized_before_decoding_and_strangers_refused(free_port: int) 
 def test_eviction_answers_waiting_frames_and_forgets_the_robot(free_port: int) -> None:
     det = StandIn()
     admission = Admission(max_robots=4, idle_timeout=0.1)
-    service = DetectorService(det, KEYS, "edge1", queue=5, batch=1, admission=admission)  # type: ignore[arg-type]
+    # first in, first out: whenever the thread takes the first frame, the three after it wait (the
+    # default, newest first, would answer the frames before the one it took superseded)
+    service = DetectorService(det, KEYS, "edge1", queue=5, batch=1, admission=admission,  # type: ignore[arg-type]
+                              serve="oldest")
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("edge1"))
         answers = Answers(s, "r1")
