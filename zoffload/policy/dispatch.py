@@ -25,10 +25,7 @@ the soonest). The robot (robot/frames.py) does not count a frame as alone after 
 answer came (the lost frame may still be on the link), nor a trial of the other encoding; a switch
 of encoding clears the base and drains at the next frame. Before, the base also took off the
 bottleneck's estimated time then and added it back now; a delivered-rate sample far off made it
-negative (a replay of a real capped-link run: -51 ms). Tuning half, a quarter core, interleaved
-with the old code, async AP50: capped link 69.5 (5 runs; three fell to 64-67, the robot detecting
-151-188 frames itself and the edge's median queue at 11-25 ms) -> 74.5 (3 runs), Wi-Fi 67.9 ->
-67.2; the held-out half, 2 runs each: capped 57.2 -> 56.4, Wi-Fi 50.5 -> 52.5: within the spread.
+negative (README: "The base latency from frames sent alone").
 
 Fresh frames, not queues: the edge path holds as many frames as keep its bottleneck busy for a
 base latency, ``ceil(r0 / bottleneck time)``, plus ``queue_frames`` waiting (at most ``window``),
@@ -37,8 +34,7 @@ local detector takes a frame only if it would start it within ``slack`` camera p
 fresher frame would be finished just as soon). A frame that neither side takes so goes to the edge
 all the same, a *spare*, while the window has room and the edge would finish it within
 ``max_age``: a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
-and on a robot under a CPU quota the spare keeps the link busy while the whole process stalls (on
-the tuning half, capped link, a quarter core: skips 50 → 5 of 1250, async AP50 60.3 → 62.4). A
+and on a robot under a CPU quota the spare keeps the link busy while the whole process stalls. A
 frame that no side finishes within ``max_age`` of its capture is skipped (its own bucket). A
 frame that would replace one already waiting in a side's one-slot queue counts against that side
 (one of the two is lost).
@@ -52,11 +48,8 @@ looked fast. A frame the edge answers ``dropped`` is none of them: the edge keep
 frames per robot and drops the older when a newer comes, so it serves the fresher one. It used
 to count as a loss and shrink the window by a frame; the spares that overflowed the edge's queue
 (60-130 a run) then held the path below its depth, and a fixed "edge only", whose frames the edge
-drops in the same way all the time, finished more frames (held-out Wi-Fi walk: 844 against 700-795).
-Interleaved with the code before, a quarter core, async AP50, held-out half: capped 34.5, 33.6,
-27.4 -> 39.2, 31.5, 27.1; Wi-Fi walk 32.3, 28.2, 24.7 -> 37.7, 34.7, 24.5 (edge frames 766 -> 887,
-skipped 336 -> 26 in the first capped pair); tuning half: capped 39.2, 48.9 -> 50.7, 51.3, Wi-Fi
-42.2, 44.9 -> 42.7, 42.9.
+drops in the same way all the time, finished more frames (README:
+"A frame the edge's queue replaced is not a loss").
 
 The robot's CPU is a server too: under a CPU quota the detector is paced (``local_ready_at``) to
 use at most what the rest of the process leaves of ``cpu_share`` × quota (process CPU time minus
@@ -67,12 +60,8 @@ time less its CPU time over half a camera period) takes only the frames the edge
 within ``max_age`` (the edge blocked, gone or too slow); one that does not (a robot with the CPU to
 spare) is the second server throughout. Before, the stalling detector also took a frame whenever
 its stall fitted in the work the edge path's bottleneck had queued, but the stall delayed the
-*following* sends all the same (Wi-Fi walk: the edge's frames spent 82-94 ms of their way outside
-the edge's queue and detector, against 51-52 ms with edge only). Interleaved runs, a quarter core,
-async AP50 on a noisy host, before -> after: held-out half, capped link 33.7 +- 2.1 -> 35.5 +- 3.6
-(3, 5 runs), Wi-Fi walk 29.3 +- 3.8 -> 32.6 +- 1.0 (3, 5), unconstrained 31.9 -> 33.0 (2, 2); tuning
-half, capped 46.5 -> 55.5 (4 pairs), Wi-Fi 46.1 -> 41.8 (3 pairs); the robot's CPU 24-25 % -> 19-22 %
-of a core. A slow local measurement drifts back towards the detector's
+*following* sends all the same (README: "A stalling local detector takes only what the edge
+cannot finish in time"). A slow local measurement drifts back towards the detector's
 CPU time while it is idle (half-life ``recover``), so one slow spell does not idle it for good.
 
 Losses: an edge frame unanswered within the reply timeout blocks the edge until an answer comes and
@@ -82,9 +71,7 @@ grows back by a quarter frame per answer). While
 blocked, the edge is asked again every ``retry_period``: a frame the local detector takes goes as a
 copy, one it does not take (it would be skipped) goes to the edge itself. Before, a second's Wi-Fi
 outage left a window of one frame and the edge blocked until the next copy, ``refresh_period``
-later, while the quarter-core detector alone skipped every other frame. Tuning half,
-``wifi-locations``, a quarter core, async AP50 of two runs each in the same hour: 62.7, 65.7
-before, 67.3, 65.6 after (person boxes of the frames never processed: 307, 224 before, 163, 175).
+later, while the quarter-core detector alone skipped every other frame.
 
 Copies: when no frame went to the edge for ``refresh_period``, a frame detected locally is also
 sent to the edge and only its answer time is used, so the edge's estimate stays fresh and no frame
