@@ -300,10 +300,11 @@ class CameraOffloader:
             encode_ms = (time.time() - encode_start) * 1e3
             with self._lock:
                 rec = self.book.records.get(reading.seq)
-                if rec is not None:
-                    rec.update(bytes=len(data), encode_ms=encode_ms, sent_size=f"{size[0]}x{size[1]}")
+                put_start = time.time()
+                if rec is not None:  # ``put``: when its bytes went to Zenoh (robot/frames.py _reply)
+                    rec.update(bytes=len(data), encode_ms=encode_ms, sent_size=f"{size[0]}x{size[1]}",
+                               put=put_start)
                 self.bytes_sent += len(data)
-            put_start = time.time()
             try:
                 self._pub.put(data)
             except Exception as exc:  # a closing session; the frame's timeout books it

@@ -281,17 +281,21 @@ class FrameBook:
 
     def _reply(self, rec: dict[str, Any], sent: float, now: float, service: float, queued_at_edge: float,
                status: str) -> EdgeReply:
-        """The answer as the strategy sees it. A frame sent before the previous (detected) one even
+        """The answer as the strategy sees it. A frame put before the previous (detected) one even
         reached the edge waited behind it on the link: the gap between their answers is the link's
-        time for this frame's bytes, a sample of the rate it delivers (frames sent later would count
-        idle time too)."""
+        time for this frame's bytes, a sample of the rate it delivers (frames put later would count
+        idle time too). Put, not handed to the sender (``sent``): a robot under a CPU quota may stall
+        between the two for most of a scheduling period (100 ms), and a gap that holds the stall is
+        no sample of the link (an unconstrained link once read 100 ms per raw frame so, and frames
+        went as JPEG)."""
         nbytes = float(rec.get("bytes", NAN))
         if status != "ok":  # an overflowing edge answers at once: no sample of its pace
             if rec.get("trial"):  # nor of the link: the trial is over, tried again later
                 self._encoding_lost(rec, now)
                 nbytes = NAN
             return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
-        queued = sent < self._last_arrival and self._last_answer < now
+        put = float(rec.get("put", sent))
+        queued = put < self._last_arrival and self._last_answer < now
         gap = now - self._last_answer if queued else NAN
         rate = nbytes / gap if math.isfinite(nbytes) else NAN
         self._last_answer = now

@@ -300,3 +300,21 @@ def test_finish_never_books_a_frame_twice() -> None:
     b.finish(0, "dropped_stale")  # a path that forgot to check
     assert b.records[0]["status"] == "local_done" and b.counters["rebooked"] == 1
     assert b.balanced() and b.summary()["other"]["rebooked"] == 1
+
+
+def test_a_frame_put_after_the_previous_one_reached_the_edge_is_no_link_sample() -> None:
+    """Handed to the sender before the previous frame reached the edge, but put after it (the robot
+    stalled between the two): the gap between the answers holds the stall, not the link's time."""
+    s = Scripted([EDGE, EDGE, EDGE])
+    b = book(s)
+    for seq in range(3):
+        b.decide(seq, seq, capture=0.04 * seq, now=0.04 * seq)
+        b.sent(seq, 0.04 * seq, False)
+        b.records[seq].update(bytes=1e6, put=0.04 * seq)
+    b.records[1]["put"] = 0.09  # the stall: frame 0 reached the edge at 0.10 - 0.05 = 0.05
+    b.edge_result(0, "ok", 0.10, 0.05, 0.0, *NONE)
+    b.edge_result(1, "ok", 0.20, 0.05, 0.0, *NONE)
+    assert math.isnan(s.replies[-1].delivery_rate)
+    # frame 2 was put at 0.08, before frame 1 reached the edge (0.15): a sample of the link
+    b.edge_result(2, "ok", 0.26, 0.05, 0.01, *NONE)
+    assert s.replies[-1].delivery_rate == pytest.approx(1e6 / 0.06)
