@@ -17,8 +17,9 @@ stepped over, no array built), before admission and before the frame is decoded.
 Counters: every sample is counted once as ``samples`` and ends in exactly one of a drop
 (``detector.drops``: bad key, refused, malformed, foreign, a callback exception), ``other_edge`` or
 ``received``; every received frame ends in exactly one of ``served``, ``errors``, ``dropped``
-(queue overflow), ``evicted`` (its robot evicted), or is still ``queued`` / in a pass
-(``balance()``). Frames still queued when the service stops are not answered.
+(superseded by a newer frame of its robot, or its queue overflowed), ``evicted`` (its robot
+evicted), or is still ``queued`` / in a pass (``balance()``). Frames still queued when the
+service stops are not answered.
 
 The Zenoh callback only decodes, checks sizes and queues; one inference thread serves all robots.
 Sizes are checked before any pixel is decoded: the declared width x height against the pixel cap,

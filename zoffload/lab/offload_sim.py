@@ -62,6 +62,10 @@ class SimConfig:
     edge_sigma: float = 0.2
     edge_queue: int = 2
     edge_serve: str = "newest"  # which waiting frame the edge's detector takes (edge/detection.py)
+
+    def __post_init__(self) -> None:
+        if self.edge_serve not in ("newest", "oldest"):
+            raise ValueError(f"edge_serve must be 'newest' or 'oldest', not {self.edge_serve!r}")
     edge_slowdown: float = 0.1  # the edge detector runs this much slower while the robot's runs
     reply_timeout: float = 0.5
     link_queue: float = 0.1  # s of transmission the emulator queues before it stops reading
@@ -197,7 +201,8 @@ class Simulation:
                     sender = _Job(send_slot, cfg.send_cpu)
                     book.records[send_slot]["bytes"] = cfg.frame_bytes
                 send_slot = None
-            if sender is not None and sender.cpu_left <= 0:
+            if sender is not None and sender.cpu_left <= 0:  # encoded: put (robot/camera.py)
+                book.records[sender.seq]["put"] = t
                 sender_blocked, sender = sender.seq, None
             state = self.trace.at(t)
             room = state.rate_bps("up") * cfg.link_queue

@@ -44,8 +44,9 @@ chosen: on the tuning half of the images NanoDet-m on a fresh frame scores what 
 one frame late (78.3 vs 78.2 AP50), and PicoDet-S is the stronger model in general (COCO mAP 30.6
 against 20.6). Each edge frame carries the recent share of frames the edge lost (timeouts,
 errors) times ``max_age``: the offloading thesis' failure was an edge whose few returning frames
-looked fast. A frame the edge answers ``dropped`` is none of them: the edge keeps two waiting
-frames per robot and drops the older when a newer comes, so it serves the fresher one. It used
+looked fast. A frame the edge answers ``dropped`` is none of them: the edge serves each robot's
+newest waiting frame and drops the older ones (and the oldest when its queue of two overflows),
+so it serves the fresher one. It used
 to count as a loss and shrink the window by a frame; the spares that overflowed the edge's queue
 (60-130 a run) then held the path below its depth, and a fixed "edge only", whose frames the edge
 drops in the same way all the time, finished more frames (README:
@@ -375,8 +376,8 @@ class Dispatcher(Strategy):
         self.window = min(float(self.max_in_flight), self.window + 0.25)
 
     def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
-        """An error counts as a lost frame. A frame the edge answers ``dropped`` was replaced in its
-        queue by a newer one of ours, which it serves instead: the edge lost nothing, and the path
+        """An error counts as a lost frame. A frame the edge answers ``dropped`` was superseded by a
+        newer one of ours, which it serves instead: the edge lost nothing, and the path
         holds the freshest frame (the newer one could have waited there no sooner)."""
         self._answered(reply)
         if reply.status != "dropped":

@@ -71,7 +71,7 @@ class EdgeReply:
     bytes: float  # the frame's size on the wire (NaN if unknown)
     service: float  # the edge's own processing time (decode + inference), NaN if it says none
     delivery_rate: float = NAN  # bytes/s acked over this frame's flight, when the pipe was busy
-    status: str = "ok"  # ok, dropped (the edge's queue overflowed), error
+    status: str = "ok"  # ok, dropped (a newer frame of ours came behind it, or the queue overflowed), error
     edge_queue: float = NAN  # how long it waited in the edge's queue (the edge says), NaN if unknown
     alone: bool = False  # sent with no other edge frame unanswered: no queue in its answer time
 
@@ -107,8 +107,9 @@ class Strategy:
         pass
 
     def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
-        """The edge answered without detections (its queue overflowed, or the frame was bad): by
-        default as bad as a frame that timed out after ``penalty`` seconds."""
+        """The edge answered without detections (``dropped``: a newer frame of ours came behind it,
+        or its queue overflowed; ``error``: the frame was bad): by default as bad as a frame that
+        timed out after ``penalty`` seconds."""
         self.on_edge_timeout(penalty)
 
     def on_edge_timeout(self, waited: float) -> None:  # noqa: B027 - optional hook
@@ -260,6 +261,12 @@ class DeliveryAwareDynamic(ThesisDynamic):
         else:
             self._since_probe = 0
         return side
+
+    def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
+        """A frame the edge answered ``dropped`` was superseded by a newer one of ours (the edge
+        serves each robot's newest frame, edge/detection.py): no loss. Errors count as timeouts."""
+        if reply.status != "dropped":
+            self.on_edge_timeout(penalty)
 
     def on_edge_timeout(self, waited: float) -> None:
         self.rtt_edge.add(waited)

@@ -280,7 +280,8 @@ class Detections(Message):
     send_stamp: float = _num(bounds=STAMP)  # echo of Frame.send_stamp (robot clock)
     edge: str = _text(ident=True)
     model: str = _text(max_len=ID_MAX)
-    status: str = _text(choices=("ok", "error", "dropped"))  # "error": undecodable; "dropped": overloaded
+    status: str = _text(choices=("ok", "error", "dropped"))  # "error": undecodable; "dropped": not served
+    # (a newer frame of the robot came behind it, its queue overflowed, or the robot was evicted)
     infer_time: float = _num(bounds=DURATION)  # edge inference [s]
     queue_time: float = _num(bounds=DURATION)  # waiting on the edge before inference [s]
     batch: int = _num(lo=0, hi=1e6)  # frames served in the same pass as this one

@@ -153,6 +153,14 @@ class EncodingChoice:
             return False
         return self._to_jpeg(now, "a raw frame was lost") if self.current == RAW else False
 
+    def untried(self, now: float) -> None:
+        """A trial frame the edge did not detect because a newer frame came behind it (the edge
+        serves each robot's newest frame): no measurement, so the next trial comes after the same
+        wait, not a doubled one."""
+        if self.mode == AUTO:
+            self.trial_out = False
+            self.next_trial = now + self.wait
+
     def _to_jpeg(self, now: float, why: str) -> bool:
         if now - self.raw_since > self.settled:  # raw held long: the link changed, not a flutter
             self.wait = self.first_trial

@@ -291,7 +291,10 @@ class FrameBook:
         nbytes = float(rec.get("bytes", NAN))
         if status != "ok":  # an overflowing edge answers at once: no sample of its pace
             if rec.get("trial"):  # nor of the link: the trial is over, tried again later
-                self._encoding_lost(rec, now)
+                if status == "dropped":  # a newer frame came behind it: says nothing of the link
+                    self.encodings.untried(now)
+                else:
+                    self._encoding_lost(rec, now)
                 nbytes = NAN
             return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
         put = float(rec.get("put", sent))
@@ -306,8 +309,10 @@ class FrameBook:
         # path time would be taken for the new encoding's
         other = bool(rec.get("trial"))
         if rec.get("encoding"):
-            if self.encodings.answered(rec["encoding"], other, sent, now, edge_time,
-                                       float(rec.get("encode_ms", NAN)) / 1e3, service, gap):
+            # from the put when known (the encoding and any stall before it left out)
+            if self.encodings.answered(rec["encoding"], other, put, now, edge_time,
+                                       0.0 if "put" in rec else float(rec.get("encode_ms", NAN)) / 1e3,
+                                       service, gap):
                 self._encoding_switched()
             other = other or rec["encoding"] != self.encodings.current
             if other:

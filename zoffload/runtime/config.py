@@ -199,7 +199,7 @@ class DetectorSettings(_Strict):
     )
     threads: int = Field(default=0, ge=0, description="onnxruntime intra-op threads; 0 = its default")
     queue: int = Field(default=2, ge=1, description="frames waiting per robot before the oldest is dropped")
-    batch: int = Field(default=4, ge=1, description="frames taken per pass when they queue up")
+    batch: int = Field(default=4, ge=1, description="robots' frames taken per pass when they queue up")
     serve: Literal["newest", "oldest"] = Field(
         default="newest",
         description="which of a robot's waiting frames a pass takes: newest (the others are answered "

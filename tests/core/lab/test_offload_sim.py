@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from zoffload.lab.link.trace import constant
 from zoffload.lab.offload_sim import SimConfig, Simulation
 from zoffload.policy.offload import make_strategy
@@ -32,3 +34,17 @@ def test_on_a_capped_link_a_fixed_ratio_queues_frames_the_dispatcher_keeps_them_
 def test_a_full_core_robot_detects_every_frame_itself() -> None:
     done, fresh = _run("dispatch", quota=1.0)
     assert done >= 490 and fresh >= 490
+
+
+def test_the_simulated_edge_serves_the_newest_frame_or_the_oldest() -> None:
+    """Edge only on a link that carries every frame, the edge slower than the camera: with the
+    newest frame served (the edge's default) its answers come sooner than first in, first out."""
+    def median_rtt(serve: str) -> float:
+        book = Simulation(make_strategy("edge"), SimConfig(edge_service=0.06, edge_serve=serve),
+                          constant(1e4, delay_ms=2), 300).run()
+        assert book.balanced() and book.balance()["pending"] == 0
+        rtts = sorted(r["rtt_ms"] for r in book.records.values() if r["status"] == "edge_done")
+        return rtts[len(rtts) // 2]
+    assert median_rtt("newest") < median_rtt("oldest") - 20
+    with pytest.raises(ValueError, match="edge_serve"):
+        SimConfig(edge_serve="latest")

@@ -86,6 +86,13 @@ def test_our_window_halves_on_losses_and_grows_back() -> None:
     for _ in range(8):
         ours.on_edge_result(0.1)
     assert ours.flight_window == 4  # type: ignore[attr-defined]
+    # a frame the edge answered dropped for a newer one of ours is no loss; an error is
+    dropped = EdgeReply(sent=1.0, result=1.01, bytes=1e6, service=float("nan"), status="dropped")
+    ours.on_edge_refused(dropped, 0.5)
+    assert ours.flight_window == 4  # type: ignore[attr-defined]
+    error = EdgeReply(sent=1.0, result=1.01, bytes=1e6, service=float("nan"), status="error")
+    ours.on_edge_refused(error, 0.5)
+    assert ours.flight_window == 2  # type: ignore[attr-defined]
 
 
 # The work-conserving dispatcher (policy/dispatch.py)

@@ -200,3 +200,42 @@ def test_no_trial_while_even_jpeg_frames_wait_for_the_link() -> None:
         t += 0.04
         c.answered(JPEG, False, t - 0.2, t, SERVICE, 0.005, SERVICE, 0.040)
     assert c.pick(t) == (RAW, True) and c.trials == 1
+
+
+def test_a_trial_the_edge_dropped_for_a_newer_frame_is_tried_again_without_backing_off() -> None:
+    """The edge serves each robot's newest frame: a raw trial that a JPEG frame overtook at the edge
+    is answered ``dropped``, which says nothing of the link (an error still ends the trial)."""
+    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+    for status, wait in (("dropped", 1.0), ("error", 2.0)):
+        b = FrameBook(Dispatcher(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
+        b.edges_changed(True, 0.0)
+        b.decide(1, 1, 0.0, 0.0)
+        b.sent(1, 0.0, False)
+        b.encoding_for(1, 0.0)
+        b.edge_result(1, "ok", 0.08, SERVICE, 0.0, *empty)
+        b.decide(2, 2, 1.2, 1.2)
+        b.sent(2, 1.2, False)
+        assert b.encoding_for(2, 1.2) == (RAW, True)
+        b.edge_result(2, status, 1.25, math.nan, math.nan, *empty)
+        enc = b.encodings
+        assert not enc.trial_out and enc.current == JPEG
+        assert enc.wait == pytest.approx(wait) and enc.next_trial == pytest.approx(1.25 + wait), status
+
+
+def test_a_trials_link_time_counts_from_its_put() -> None:
+    """Handed to the sender at 1.1 s, put at 1.185 s (the robot stalled between): the 85 ms are not
+    the link's, and the trial (5 ms of link beyond a JPEG frame's path) finds raw frames fast."""
+    b = FrameBook(EdgeOnly(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
+    b.edges_changed(True, 0.0)
+    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+    b.decide(1, 1, 0.0, 0.0)
+    b.sent(1, 0.0, False)
+    b.encoding_for(1, 0.0)
+    b.records[1].update(put=0.0)
+    b.edge_result(1, "ok", 0.06, SERVICE, 0.0, *empty)  # path 20 ms besides the edge's time
+    b.decide(2, 2, 1.1, 1.1)
+    b.sent(2, 1.1, False)
+    assert b.encoding_for(2, 1.1) == (RAW, True)
+    b.records[2].update(put=1.185)
+    b.edge_result(2, "ok", 1.25, SERVICE, 0.0, *empty)  # 1.25 - 1.185 - 0.04 - 0.02 = 5 ms of link
+    assert b.encodings.current == RAW
