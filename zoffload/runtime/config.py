@@ -202,8 +202,7 @@ class DetectorSettings(_Strict):
     batch: int = Field(default=4, ge=1, description="robots' frames taken per pass when they queue up")
     serve: Literal["newest", "oldest"] = Field(
         default="newest",
-        description="which of a robot's waiting frames a pass takes: newest (the others are answered "
-        "dropped: their results would come after a newer one's) or oldest (first in, first out, the thesis')",
+        description="a robot's waiting frame a pass takes: newest (older ones answered dropped) or oldest",
     )
 
 
