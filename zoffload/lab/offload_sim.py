@@ -219,22 +219,22 @@ class Simulation:
                 else:
                     link[0] = (seq, left)
             # Edge: queue (the oldest answered dropped), one detector
+            dropped: list[int] = []
             for arrival in [x for x in to_edge if x[0] <= t]:
                 to_edge.remove(arrival)
                 edge.queue.append((arrival[1], t))
                 if len(edge.queue) > cfg.edge_queue:
-                    dropped, _ = edge.queue.popleft()
-                    to_robot.append((t + state.delay_ms / 1e3, dropped, "dropped", math.nan, math.nan))
+                    dropped.append(edge.queue.popleft()[0])
             if edge.busy is None and edge.queue:
-                if cfg.edge_serve == "newest":
+                if cfg.edge_serve == "newest":  # the older ones superseded
                     seq, arrived = edge.queue.pop()
-                    for older, _ in edge.queue:
-                        to_robot.append((t + state.delay_ms / 1e3, older, "dropped", math.nan, math.nan))
+                    dropped.extend(older for older, _ in edge.queue)
                     edge.queue.clear()
                 else:
                     seq, arrived = edge.queue.popleft()
                 service = self._lognormal(cfg.edge_service, cfg.edge_sigma)
                 edge.busy = (seq, t + service, service, t - arrived)
+            to_robot.extend((t + state.delay_ms / 1e3, k, "dropped", math.nan, math.nan) for k in dropped)
             if edge.busy is not None:
                 seq, finish, service, queued = edge.busy
                 if local is not None:  # the robot's detector takes a share of the shared cores

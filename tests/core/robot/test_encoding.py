@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from zoffload.policy.dispatch import Dispatcher
-from zoffload.policy.offload import EDGE, EdgeOnly
+from zoffload.policy.offload import EDGE, EdgeOnly, Strategy
 from zoffload.robot.encoding import JPEG, RAW, EncodingChoice
 from zoffload.robot.frames import FallbackRules, FrameBook
 
@@ -26,6 +26,30 @@ def trial(c: EncodingChoice, now: float, link: float) -> bool:
     assert c.pick(now) == (RAW, True)
     assert c.pick(now) == (JPEG, False)  # one trial at a time
     return c.answered(RAW, True, now, now + 0.010 + link + SERVICE, SERVICE, 0.0, SERVICE, math.nan)
+
+
+EMPTY = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))  # an answer without persons
+
+
+def book_at_a_trial(strategy: Strategy, answered: float, trial_at: float, copy: bool = False,
+                    puts: tuple[float, float] | None = None) -> FrameBook:
+    """A book with ``auto`` encoding whose first frame (JPEG, sent at 0) was answered at
+    ``answered`` and whose second, handed to the sender at ``trial_at`` (as a copy if ``copy``), is
+    the first trial of raw frames; ``puts``: when each went to Zenoh."""
+    b = FrameBook(strategy, FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
+    b.edges_changed(True, 0.0)
+    b.decide(1, 1, 0.0, 0.0)
+    b.sent(1, 0.0, False)
+    b.encoding_for(1, 0.0)
+    if puts is not None:
+        b.records[1]["put"] = puts[0]
+    b.edge_result(1, "ok", answered, SERVICE, 0.0, *EMPTY)
+    b.decide(2, 2, trial_at, trial_at)
+    b.sent(2, trial_at, False, copy=copy)
+    assert b.encoding_for(2, trial_at) == (RAW, True)
+    if puts is not None:
+        b.records[2]["put"] = puts[1]
+    return b
 
 
 def test_auto_starts_with_jpeg_and_takes_raw_frames_when_a_trial_finds_the_link_fast() -> None:
@@ -104,16 +128,7 @@ def test_a_trial_whose_answer_never_comes_does_not_stop_the_trials() -> None:
 def test_a_trial_sent_as_a_copy_is_over_when_its_edge_goes() -> None:
     """A trial frame may be a dispatcher's copy (the frame detected locally, the copy measuring the
     edge); when the edge goes, the copy is dropped and the trial is over (not waiting a minute)."""
-    b = FrameBook(Dispatcher(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
-    b.edges_changed(True, 0.0)
-    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
-    b.decide(1, 1, 0.0, 0.0)
-    b.sent(1, 0.0, False)
-    b.encoding_for(1, 0.0)
-    b.edge_result(1, "ok", 0.08, SERVICE, 0.0, *empty)
-    b.decide(2, 2, 1.2, 1.2)
-    b.sent(2, 1.2, False, copy=True)
-    assert b.encoding_for(2, 1.2) == (RAW, True)
+    b = book_at_a_trial(Dispatcher(), answered=0.08, trial_at=1.2, copy=True)
     b.edges_changed(False, 1.3)
     enc = b.encodings
     assert not enc.trial_out and enc.next_trial == pytest.approx(3.3) and b.counters["copies_lost"] == 1
@@ -205,18 +220,9 @@ def test_no_trial_while_even_jpeg_frames_wait_for_the_link() -> None:
 def test_a_trial_the_edge_dropped_for_a_newer_frame_is_tried_again_without_backing_off() -> None:
     """The edge serves each robot's newest frame: a raw trial that a JPEG frame overtook at the edge
     is answered ``dropped``, which says nothing of the link (an error still ends the trial)."""
-    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
     for status, wait in (("dropped", 1.0), ("error", 2.0)):
-        b = FrameBook(Dispatcher(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
-        b.edges_changed(True, 0.0)
-        b.decide(1, 1, 0.0, 0.0)
-        b.sent(1, 0.0, False)
-        b.encoding_for(1, 0.0)
-        b.edge_result(1, "ok", 0.08, SERVICE, 0.0, *empty)
-        b.decide(2, 2, 1.2, 1.2)
-        b.sent(2, 1.2, False)
-        assert b.encoding_for(2, 1.2) == (RAW, True)
-        b.edge_result(2, status, 1.25, math.nan, math.nan, *empty)
+        b = book_at_a_trial(Dispatcher(), answered=0.08, trial_at=1.2)
+        b.edge_result(2, status, 1.25, math.nan, math.nan, *EMPTY)
         enc = b.encodings
         assert not enc.trial_out and enc.current == JPEG
         assert enc.wait == pytest.approx(wait) and enc.next_trial == pytest.approx(1.25 + wait), status
@@ -225,17 +231,7 @@ def test_a_trial_the_edge_dropped_for_a_newer_frame_is_tried_again_without_backi
 def test_a_trials_link_time_counts_from_its_put() -> None:
     """Handed to the sender at 1.1 s, put at 1.185 s (the robot stalled between): the 85 ms are not
     the link's, and the trial (5 ms of link beyond a JPEG frame's path) finds raw frames fast."""
-    b = FrameBook(EdgeOnly(), FallbackRules(reply_timeout=1.0), encodings=EncodingChoice("auto"))
-    b.edges_changed(True, 0.0)
-    empty = (np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
-    b.decide(1, 1, 0.0, 0.0)
-    b.sent(1, 0.0, False)
-    b.encoding_for(1, 0.0)
-    b.records[1].update(put=0.0)
-    b.edge_result(1, "ok", 0.06, SERVICE, 0.0, *empty)  # path 20 ms besides the edge's time
-    b.decide(2, 2, 1.1, 1.1)
-    b.sent(2, 1.1, False)
-    assert b.encoding_for(2, 1.1) == (RAW, True)
-    b.records[2].update(put=1.185)
-    b.edge_result(2, "ok", 1.25, SERVICE, 0.0, *empty)  # 1.25 - 1.185 - 0.04 - 0.02 = 5 ms of link
+    # the first frame's path: 60 ms less the edge's 40, 20 ms
+    b = book_at_a_trial(EdgeOnly(), answered=0.06, trial_at=1.1, puts=(0.0, 1.185))
+    b.edge_result(2, "ok", 1.25, SERVICE, 0.0, *EMPTY)  # 1.25 - 1.185 - 0.04 - 0.02 = 5 ms of link
     assert b.encodings.current == RAW
