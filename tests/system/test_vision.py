@@ -223,6 +223,10 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
     sent = [f for f in _frames(run) if f["trial"] == "1"]
     assert frames[0]["encoding"] == "jpeg" and enc["trials"] == len(sent) >= 1, enc  # JPEG until a trial
     assert all(f["encoding"] == "bgr8" for f in sent)
+    # the edge stamps its answers with the frames' arrivals (codec version 4) once its status said
+    # it reads 4 (the answers before its first status, within a second, go without)
+    answered = sum(m["balance"][k] for k in ("edge_done", "edge_dropped", "edge_error"))
+    assert m["link_clock"]["stamped"] >= 0.8 * answered, (m["link_clock"], m["balance"])
     if mbps is None:
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
         # raw once the trial said so (a slow edge, ~60 ms a frame against the camera's 40, can drop

@@ -231,7 +231,7 @@ class DetectorService:
             self._count("other_edge")
             return
         if not self.admission.admit(robot, arrival):
-            self._refuse(data, robot)
+            self._refuse(data, robot, arrival)
             return
         try:
             frame = wire.decode(data, expect=wire.Frame, limits=self.limits)
@@ -263,7 +263,7 @@ class DetectorService:
         if dropped is not None:
             self._reply(dropped, "dropped", detail="edge detector overloaded")
 
-    def _refuse(self, data: bytes, robot: str) -> None:
+    def _refuse(self, data: bytes, robot: str, arrival: float = float("nan")) -> None:
         why = self.admission.why_refused(robot)
         self.drops.drop("refused", why)
         if self._session is None or not self.admission.answer_refusal():
@@ -273,8 +273,8 @@ class DetectorService:
         except wire.WireError:
             return
         if frame.robot == robot:  # Detections has no "refused" status: an error that says so
-            self._session.put(self.keys.detections(robot), wire.encode(self._answer(frame, "error",
-                                                                                    f"refused: {why}")),
+            self._session.put(self.keys.detections(robot),
+                              wire.encode(self._answer(frame, "error", f"refused: {why}", arrival=arrival)),
                               congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def _take(self) -> list[_Pending]:
@@ -350,7 +350,9 @@ class DetectorService:
 
     def _answer(self, frame: wire.Frame, status: str, detail: str = "", queue_time: float = float("nan"),
                 infer_time: float = float("nan"), batch: int = 0,
-                det: Detections | None = None) -> wire.Detections:
+                det: Detections | None = None, arrival: float = float("nan")) -> wire.Detections:
+        """The answer to ``frame``; stamped with its ``arrival`` (this edge's clock) only when the
+        robot said it reads codec version 4 (an older robot refuses the field)."""
         def duration(x: float) -> float:  # what the codec accepts; NaN = not measured
             return x if 0.0 <= x <= 3600.0 else float("nan")
 
@@ -361,11 +363,12 @@ class DetectorService:
             boxes=det.boxes if det is not None else np.zeros((0, 4), np.float32),
             scores=det.scores if det is not None else np.zeros(0, np.float32),
             classes=det.classes if det is not None else np.zeros(0, np.int32),
+            arrival=arrival if frame.reads >= 4 else float("nan"),
         )
 
     def _reply(self, p: _Pending, status: str, detail: str = "", queue_time: float = float("nan"),
                infer_time: float = float("nan"), batch: int = 0, det: Detections | None = None) -> None:
-        msg = self._answer(p.frame, status, detail, queue_time, infer_time, batch, det)
+        msg = self._answer(p.frame, status, detail, queue_time, infer_time, batch, det, p.arrival)
         try:
             if not self.admission.is_admitted(p.frame.robot):  # evicted meanwhile: no publisher again
                 assert self._session is not None
@@ -419,6 +422,9 @@ class DetectorService:
         net_h, net_w = self.detector.input_hw
         values.update({"detector.input_w": float(net_w), "detector.input_h": float(net_h),
                        "detector.stretch": float(self.detector.stretch)})
+        # The newest codec version this edge reads: a robot that reads it too asks for answers
+        # stamped with the frame's arrival (robot/frames.py times the link by them)
+        values["wire.reads"] = float(max(wire.READS))
         if self.infer_times:
             values["detector.infer_ms"] = float(np.mean(self.infer_times) * 1e3)
         return values

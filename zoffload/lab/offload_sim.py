@@ -141,6 +141,7 @@ class Simulation:
         link: deque[tuple[int, float]] = deque()  # (seq, bytes left) being transmitted, FIFO
         to_edge: list[tuple[float, int]] = []  # (arrival at the edge, seq)
         to_robot: list[tuple[float, int, str, float, float]] = []  # (arrival, seq, status, service, queued)
+        arrived_at: dict[int, float] = {}  # seq -> when it reached the edge, until answered
         edge = _Edge()
         end = (self.n + 2) * self.period + 2 * cfg.reply_timeout + 1.0
         while t < end:
@@ -202,7 +203,7 @@ class Simulation:
                     book.records[send_slot]["bytes"] = cfg.frame_bytes
                 send_slot = None
             if sender is not None and sender.cpu_left <= 0:  # encoded: put (robot/camera.py)
-                book.records[sender.seq]["put"] = t
+                book.putting(sender.seq, t)
                 sender_blocked, sender = sender.seq, None
             state = self.trace.at(t)
             room = state.rate_bps("up") * cfg.link_queue
@@ -223,6 +224,7 @@ class Simulation:
             for arrival in [x for x in to_edge if x[0] <= t]:
                 to_edge.remove(arrival)
                 edge.queue.append((arrival[1], t))
+                arrived_at[arrival[1]] = t
                 if len(edge.queue) > cfg.edge_queue:
                     dropped.append(edge.queue.popleft()[0])
             if edge.busy is None and edge.queue:
@@ -246,7 +248,8 @@ class Simulation:
                     edge.busy = None
             for answer in [x for x in to_robot if x[0] <= t]:
                 to_robot.remove(answer)
-                book.edge_result(answer[1], answer[2], t, answer[3], answer[4], *_EMPTY)
+                book.edge_result(answer[1], answer[2], t, answer[3], answer[4], *_EMPTY,
+                                 arrival=arrived_at.pop(answer[1], math.nan))  # the edge stamps it
             if produced >= self.n and not book.in_flight and local is None and local_slot is None:
                 break
         book.close(t, send_slot, local_slot)

@@ -8,7 +8,8 @@ Each frame goes to the side expected to finish it soonest given what that side i
   robot's CPU budget says so (below), and takes one service time.
 * **edge**: the edge path (sender, link, edge queue, edge detector, answer) is one pipeline with a
   bottleneck time per frame, ``max(edge service time, bytes / delivered rate)`` (the delivered rate:
-  the bytes the edge answered per second while frames were queued behind each other), and a base
+  the bytes per second that reached the edge while frames queued behind each other on the link,
+  robot/frames.py and robot/linkclock.py), and a base
   latency ``r0``: the send-to-answer time of a frame with nothing ahead of it, the shortest recent
   one of the frames *sent alone* (none other unanswered) less the edge's own time on it (queue and
   detector, as the edge reports them), plus the edge detector's service time now. The frames in

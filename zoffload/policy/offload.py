@@ -70,7 +70,7 @@ class EdgeReply:
     result: float  # answer received
     bytes: float  # the frame's size on the wire (NaN if unknown)
     service: float  # the edge's own processing time (decode + inference), NaN if it says none
-    delivery_rate: float = NAN  # bytes/s acked over this frame's flight, when the pipe was busy
+    delivery_rate: float = NAN  # bytes/s the link delivered this frame at, when it queued behind another
     status: str = "ok"  # ok, dropped (a newer frame of ours came behind it, or the queue overflowed), error
     edge_queue: float = NAN  # how long it waited in the edge's queue (the edge says), NaN if unknown
     alone: bool = False  # sent with no other edge frame unanswered: no queue in its answer time

@@ -12,14 +12,19 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build reads 1, 2 and 3. Version 2 only added fields with defaults (the assignment
+Versions: this build reads 1 to 4. Version 2 only added fields with defaults (the assignment
 epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
 attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
-(a frame shrunk to the edge detector's input). A message is sent as version 3 only when it
-carries a version-3 field away from its default, else as version 2 without those fields: a
-version-2 build reads everything this one sends it unless it announced a detector input, which
-only version-3 builds do (robot/camera.py). Decoding is lenient about the label: a message is read
-by its fields (each checked), whatever version between 1 and 3 it says it is.
+(a frame shrunk to the edge detector's input). Version 4 added the codec version a frame's sender
+reads (``Frame.reads``) and, in the answer to a frame whose sender reads 4, the edge's clock when
+the frame arrived (``Detections.arrival``: the robot times the link by it, robot/frames.py). A
+message is sent as the lowest version that carries its fields away from their defaults, else as
+version 2 without them, and each side sends a newer field only to a peer that said it reads it:
+the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
+detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival only in the
+answer to a frame that said so. So a version-2 or -3 build on either side reads everything this
+one sends it. Decoding is lenient about the label: a message is read by its fields (each
+checked), whatever version between 1 and 4 it says it is.
 """
 
 from __future__ import annotations
@@ -33,8 +38,8 @@ from typing import Any, ClassVar, TypeVar, cast, overload
 import msgpack
 import numpy as np
 
-BASE_VERSION = 2  # what a message without version-3 fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3)
+BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
+READS = (1, 2, 3, 4)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
 RIGID_TOL = 1e-6  # a pose's rotation may be this far from orthonormal (float noise; consumers re-project)
@@ -138,6 +143,7 @@ def _text(default: Any = dataclasses.MISSING, choices: tuple[str, ...] | None = 
 
 
 SEQ = Num(0, SEQ_MAX)
+NAN = float("nan")
 STAMP = Num(-1e12, 1e12)  # seconds of some clock: wall or monotonic, never absurd
 DURATION = Num(0.0, 3600.0, nan=True)  # a measured duration, NaN when not measured
 
@@ -249,6 +255,9 @@ class Frame(Message):
     # answers with boxes in the camera's pixels, scaled from the frame's.
     camera_width: int = _num(0, lo=0, hi=65_535, since=3)
     camera_height: int = _num(0, lo=0, hi=65_535, since=3)
+    # Version 4: the highest codec version the robot reads (3: not said). Set to 4 only for an edge
+    # that reads 4; the edge then stamps its answer with the frame's arrival (edge clock).
+    reads: int = _num(3, lo=1, hi=1_000, since=4)
 
     def check_size(self, limits: Limits = DEFAULT_LIMITS) -> None:
         """``WireError`` unless the declared size is within the pixel cap and, for raw frames,
@@ -289,6 +298,9 @@ class Detections(Message):
     boxes: np.ndarray = _array(ArraySpec("<f4", (-1, 4), cap="max_detections"))
     scores: np.ndarray = _array(ArraySpec("<f4", (-1,), cap="max_detections"))
     classes: np.ndarray = _array(ArraySpec("<i4", (-1,), cap="max_detections"))
+    # Version 4, only in answers to frames whose robot reads 4: the edge's monotonic clock [s] when
+    # the frame arrived (NaN: not stamped). Only differences between one edge's stamps mean anything.
+    arrival: float = _num(NAN, lo=-1e12, hi=1e12, nan=True, since=4)
 
     def __post_init__(self) -> None:
         if not len(self.boxes) == len(self.scores) == len(self.classes):
@@ -453,6 +465,10 @@ def _dec_array(name: str, obj: Any, spec: ArraySpec, limits: Limits) -> np.ndarr
     return arr
 
 
+def _both_nan(a: Any, b: Any) -> bool:
+    return all(isinstance(x, (float, np.floating)) and math.isnan(x) for x in (a, b))
+
+
 def encode(msg: Message) -> bytes:
     """Serialise a message to bytes (pass these to ``put()``)."""
     out: dict[str, Any] = {"v": BASE_VERSION, "t": msg.TYPE}
@@ -460,7 +476,7 @@ def encode(msg: Message) -> bytes:
         value = getattr(msg, f.name)
         since = f.metadata.get("since", 1)
         if since > 2:
-            if value == f.default:
+            if value == f.default or _both_nan(value, f.default):
                 continue  # a version-2 reader would refuse the field: not sent at its default
             out["v"] = max(out["v"], since)
         spec = f.metadata.get("array")

@@ -207,7 +207,7 @@ class CameraOffloader:
         boxes, scores = msg.boxes[keep].copy(), msg.scores[keep].copy()
         with self._lock:
             bucket = self.book.edge_result(msg.seq, msg.status, now, msg.infer_time, msg.queue_time,
-                                           boxes, scores, edge=msg.edge)
+                                           boxes, scores, edge=msg.edge, arrival=msg.arrival)
             image = self._edge_images.pop(msg.seq, None) if bucket != "wrong_edge" else None
         if bucket == "wrong_edge":
             self.drops.drop("wrong_edge", f"frame {msg.seq} answered by edge {msg.edge!r}, not the one asked")
@@ -288,10 +288,11 @@ class CameraOffloader:
                 encoding, _ = self.book.encoding_for(reading.seq, time.time())
                 h, w = reading.frame.image.shape[:2]
                 size = self.choice.send_size(edge, w, h) if self.opts.send_size == "detector" else (w, h)
+                reads = self.choice.reads(edge)
             encode_start = time.time()
             try:
                 data = frame_message(reading.frame.image, self.opts.robot_id, reading.seq, encode_start, edge,
-                                     encoding, self.opts.jpeg_quality, size)
+                                     encoding, self.opts.jpeg_quality, size, reads)
             except Exception as exc:  # one bad frame must not end the run
                 with self._lock:
                     self.book.send_failed(reading.seq, time.time())
@@ -299,11 +300,9 @@ class CameraOffloader:
                 continue
             encode_ms = (time.time() - encode_start) * 1e3
             with self._lock:
-                rec = self.book.records.get(reading.seq)
-                put_start = time.time()
-                if rec is not None:  # ``put``: when its bytes went to Zenoh (robot/frames.py _reply)
-                    rec.update(bytes=len(data), encode_ms=encode_ms, sent_size=f"{size[0]}x{size[1]}",
-                               put=put_start)
+                put_start = time.time()  # when its bytes went to Zenoh (robot/frames.py _reply)
+                self.book.putting(reading.seq, put_start, time.monotonic(), bytes=len(data),
+                                  encode_ms=encode_ms, sent_size=f"{size[0]}x{size[1]}")
                 self.bytes_sent += len(data)
             try:
                 self._pub.put(data)
@@ -441,10 +440,11 @@ class CameraOffloader:
 
 
 def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str = "", encoding: str = RAW,
-                  jpeg_quality: int = 80, size: tuple[int, int] | None = None) -> bytes:
+                  jpeg_quality: int = 80, size: tuple[int, int] | None = None, reads: int = 3) -> bytes:
     """The encoded ``wire.Frame`` of a BGR ``image``: shrunk to ``size`` (width, height) first when
     that differs (with the edge detector's own interpolation, so its resize of what arrives is the
-    identity), then raw or JPEG. The frame sender's whole work per frame besides the put
+    identity), then raw or JPEG; ``reads`` the codec version the robot tells the edge it reads (4
+    only for an edge that said it reads 4). The frame sender's whole work per frame besides the put
     (``benchmarks/bench_frame_send.py`` times it)."""
     cam_h, cam_w = image.shape[:2]
     img = image if size is None else resize_to(image, size)
@@ -461,7 +461,8 @@ def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str
         data = np.ascontiguousarray(img).reshape(-1)
     return wire.encode(wire.Frame(robot=robot, seq=seq, send_stamp=now, capture_stamp=now, encoding=encoding,
                                   width=w, height=h, data=data, edge=edge,
-                                  camera_width=cam_w if shrunk else 0, camera_height=cam_h if shrunk else 0))
+                                  camera_width=cam_w if shrunk else 0, camera_height=cam_h if shrunk else 0,
+                                  reads=reads))
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

@@ -5,7 +5,8 @@ edges' liveliness (robot/presence.py) and their 1 Hz status values: ``detector.f
 the last few seconds the edge's detector thread was idle, edge/detection.py), ``draining``
 (1 while the edge leaves, from the fleet protocol) and the detector's network input
 (``detector.input_w``, ``detector.input_h``, ``detector.stretch``): what a frame can be shrunk to
-on its way there without changing what the network sees (``send_size``).
+on its way there without changing what the network sees (``send_size``), and ``wire.reads``, the
+newest codec version the edge reads (``reads``: whether its answers can carry the frame's arrival).
 
 Frames are stateless work, so unlike the mapping assignment (robot/assign.py) there is no attach:
 the robot names the edge in each frame (``Frame.edge``) and only that edge answers it. The choice
@@ -24,10 +25,12 @@ import math
 from dataclasses import dataclass
 
 from zoffload.detect.detector import shrink_size
+from zoffload.protocol import wire
 from zoffload.robot.assign import pair_uniform
 
 FREE, DRAINING = "detector.free", "draining"
 INPUT_W, INPUT_H, STRETCH = "detector.input_w", "detector.input_h", "detector.stretch"
+READS = "wire.reads"  # the newest codec version the edge reads (absent: 3 at most)
 INPUT_SIDES = (32, 8192)  # a network input side outside these is not believed (the frame stays whole)
 
 
@@ -37,6 +40,7 @@ class DetectorLoad:
     draining: bool = False
     input_hw: tuple[int, int] | None = None  # its detector's network input, once the edge says it
     stretch: bool = False  # whether that detector stretches a frame to its input (else letterbox)
+    reads: int = 3  # the newest codec version the edge said it reads
 
 
 def _side(value: float | None) -> int | None:
@@ -72,6 +76,16 @@ class EdgeChoice:
         w, h = _side(values.get(INPUT_W)), _side(values.get(INPUT_H))
         if w is not None and h is not None:
             load.input_hw, load.stretch = (h, w), values.get(STRETCH, 0.0) == 1.0
+        # each status is the whole picture: an edge restarted as an older build stops saying it
+        reads = values.get(READS)
+        ok = reads is not None and math.isfinite(reads) and reads == int(reads) and 1 <= reads <= 1_000
+        load.reads = int(reads) if ok and reads is not None else 3
+
+    def reads(self, edge: str) -> int:
+        """The codec version to tell ``edge`` this robot reads: 4 when the edge reads 4 too (it then
+        stamps its answers with the frame's arrival), else 3, which any edge takes without the field."""
+        load = self.edges.get(edge)
+        return min(max(wire.READS), load.reads) if load is not None and load.reads >= 4 else 3
 
     def send_size(self, edge: str, width: int, height: int) -> tuple[int, int]:
         """The size to send a ``width`` x ``height`` frame to ``edge`` at: shrunk to what its

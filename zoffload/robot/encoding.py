@@ -9,25 +9,29 @@ edge's detector takes them (on an unconstrained link, a quarter-core robot with 
 61.1 async AP50 against 57.2 with JPEG, held-out images), JPEG wherever it does not (a 160 Mbps
 cap: 55.0 against 46.4; a Wi-Fi walk 52.4 against 22.9). ``auto`` measures which case it is in:
 
-* **Raw frames** (the edge path's replies): when frames queue on the way, the gap between two
-  answers is the link's time for the later frame's bytes (robot/frames.py), a sample of the link's
-  time per raw frame. When the median of the recent samples is above the edge's detector service
-  time (``leave`` x: the link, not the detector, is the bottleneck) or a raw frame is lost, frames
-  go as JPEG. (An encoding that fails, or an edge that refuses a frame, says nothing of the link:
-  only a trial frame lost so ends its trial.) The gaps cannot see a link that slows to between the
-  trial's bound and the edge's pace (frames then queue at the edge, and the gaps show its service
-  time): raw frames stay until the link is the bottleneck or a frame is lost (a known gap).
+* **Raw frames** (the edge path's replies): when frames queue on the link, the gap between two
+  arrivals at the edge is the link's time for the later frame's bytes (robot/frames.py: from the
+  edge's arrival stamps, robot/linkclock.py; from an older edge, the gap between the answers), a
+  sample of the link's time per raw frame. When the median of the recent samples is above the
+  edge's detector service time (``leave`` x: the link, not the detector, is the bottleneck) or a
+  raw frame is lost, frames go as JPEG. (An encoding that fails, or an edge that refuses a frame,
+  says nothing of the link: only a trial frame lost so ends its trial.) The samples cannot see a
+  link that slows to between the trial's bound and the edge's pace (frames then queue at the edge,
+  not on the link): raw frames stay until the link is the bottleneck or a frame is lost (a known
+  gap).
 * **JPEG frames** do not show whether the link would carry raw ones (the edge's detector is then
   the bottleneck, and the gaps show its pace). So one frame now and then goes raw, a *trial*: its
   link time is its send-to-answer time less the edge's time, less its encoding, less the path's
-  base latency (the shortest recent one of the JPEG frames, measured the same way). A trial within
+  base latency (the shortest recent one of the JPEG frames, measured the same way; from an edge
+  that stamps arrivals, its put-to-arrival delay over the shortest recent one, and none in the
+  first answer after the link clock started again: the trial comes again). A trial within
   a quarter of the edge's service time switches to raw (a raw frame's link time adds to every
   frame's latency, and asynchronous AP counts latency as well as pace); a slower one, and every
   switch back to JPEG, doubles
   the wait before the next trial (``first_trial`` s up to ``max_wait``; back to twice
   ``first_trial`` when raw frames held for ``settled`` s), so a slow link pays one raw frame a
   minute at most and a link on the edge of the two does not flutter. No trial while the JPEG
-  frames themselves are link-bound (their answers' gaps over ``leave`` x the service time): a raw
+  frames themselves are link-bound (their link samples over ``leave`` x the service time): a raw
   frame, ~15 times the bytes, would hold a slow link for seconds (a held-out cellular uplink,
   2-40 Mbps: 5 trials in a 50 s run cost 5.7 async AP50 points against plain JPEG); the trial
   waits, doubling, instead.
@@ -109,15 +113,19 @@ class EncodingChoice:
         return len(gaps) >= 3 and self.jpeg_link.median(now) > self.leave * self.edge_service.value
 
     def answered(self, encoding: str, trial: bool, sent: float, result: float, edge_time: float,
-                 encode_time: float, service: float, link_time: float) -> bool:
+                 encode_time: float, service: float, link_time: float, path: float | None = None) -> bool:
         """An edge frame's answer: ``sent`` when it was handed to the sender, ``result`` when its
         answer came, ``edge_time`` what the edge spent on it (queue + service), ``encode_time`` the
         robot's encoding, ``service`` the edge detector's, ``link_time`` the link's time for its bytes
-        when it queued behind another (NaN otherwise). True when the encoding switched."""
+        when it queued behind another (NaN otherwise); ``path``, when the edge stamped the frame's
+        arrival, its put-to-arrival delay beyond the shortest recent one (robot/linkclock.py; NaN:
+        stamped but not measurable yet), else (None) the answer time less the edge's and the
+        encoding's. True when the encoding switched."""
         self.edge_service.add(service)
         if self.mode != AUTO:
             return False
-        path = result - sent - _finite(edge_time) - _finite(encode_time)
+        if path is None:
+            path = result - sent - _finite(edge_time) - _finite(encode_time)
         if encoding == JPEG:
             self.base.add(result, path)
             self.jpeg_link.add(result, link_time)
@@ -127,6 +135,9 @@ class EncodingChoice:
         limit = self.headroom * self.edge_service.value
         if trial:
             self.trial_out = False
+            if not math.isfinite(path):  # no measurement (the first answer after a reset): again later
+                self.next_trial = result + self.wait
+                return False
             base = self.base.min(result)
             link = path - (base if math.isfinite(base) else 0.0)
             if self.current == JPEG and math.isfinite(limit) and link <= limit:

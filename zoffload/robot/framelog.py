@@ -29,7 +29,7 @@ import numpy as np
 FRAME_FIELDS = ["seq", "index", "capture", "side", "probe", "send", "result", "status", "rtt_ms",
                 "edge_infer_ms", "edge_queue_ms", "local_infer_ms", "bytes", "n_persons", "copy",
                 "copy_rtt_ms", "est_local_ms", "est_edge_ms", "edge", "encoding", "trial", "encode_ms",
-                "sent_size", "alone", "put"]
+                "sent_size", "alone", "put", "link_ms"]
 _INDEX = np.dtype([("seq", "<i8"), ("count", "<i8")])  # one entry per retired frame with persons
 _PERSONS_INDEX, _PERSONS_ROWS = ".detections_index.bin", ".detections_rows.bin"  # rows: x1 y1 x2 y2 score
 

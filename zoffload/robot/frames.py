@@ -35,6 +35,7 @@ import numpy as np
 from zoffload.policy.offload import BOTH, EDGE, HOLD, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
 from zoffload.robot.encoding import RAW, EncodingChoice
 from zoffload.robot.framelog import FRAME_FIELDS, FrameLog
+from zoffload.robot.linkclock import LinkClock
 
 __all__ = ["DONE", "DROPPED", "FRAME_FIELDS", "FallbackRules", "FrameBook", "RobotView"]
 
@@ -97,6 +98,9 @@ class FrameBook:
         self._lost_streak = 0
         self._last_answer = -math.inf  # the edge's last answer to a frame or copy in flight
         self._last_arrival = -math.inf  # when that frame reached the edge
+        self.link_clock = LinkClock()  # the link's time per frame from the edge's arrival stamps
+        self._puts = 0  # frames and copies put so far (their order on the link)
+        self._stamped: bool | None = None  # whether the last answer carried the edge's arrival
 
     # Frames in, decisions out
     def camera_dropped(self, n: int) -> None:
@@ -154,6 +158,15 @@ class FrameBook:
             return
         self.records[seq].update(send=now, probe=int(probe))
         self.in_flight[seq] = now
+
+    def putting(self, seq: int, now: float, mono: float | None = None, **fields: Any) -> None:
+        """The sender puts the frame (or copy) now: stamped with the time (``put``; ``mono`` the
+        monotonic clock's, for robot/linkclock.py, default ``now``) and its place in the link's order
+        (``put_n``), with the sender's ``fields`` (bytes, encode_ms, sent_size)."""
+        self._puts += 1
+        rec = self.records.get(seq)
+        if rec is not None:
+            rec.update(fields, put=now, put_mono=now if mono is None else mono, put_n=self._puts)
 
     def encoding_for(self, seq: int, now: float) -> tuple[str, bool]:
         """The encoding the sender gives this frame (or copy) now (robot/encoding.py), recorded."""
@@ -236,11 +249,13 @@ class FrameBook:
         self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
-                    boxes: np.ndarray, scores: np.ndarray, edge: str | None = None) -> str:
+                    boxes: np.ndarray, scores: np.ndarray, edge: str | None = None,
+                    arrival: float = NAN) -> str:
         """Book the edge's answer; returns its bucket, ``unknown`` for a frame not in flight
         (late after its timeout, or never sent), or ``wrong_edge`` for an answer from another
         edge than the one the frame was sent to (``edge``: the answering edge; counted, the frame
-        still waits for its own edge)."""
+        still waits for its own edge). ``arrival``: when the frame reached the edge, on the edge's
+        clock (codec version 4; NaN from an older edge)."""
         rec = self.records.get(seq)
         if edge is not None and rec is not None and rec.get("edge") and rec["edge"] != edge and (
                 seq in self.in_flight or seq in self.copies):
@@ -254,7 +269,8 @@ class FrameBook:
         if sent_at is None or rec is None:
             self.counters["late_or_unknown_results"] += 1
             return "unknown"
-        reply = self._reply(rec, sent_at, now, infer_time, queue_time, status)
+        reply = self._reply(rec, sent_at, now, infer_time, queue_time, status,
+                            str(rec.get("edge") or edge or ""), arrival)
         if sent is None:  # a copy: a measurement only, the frame is detected locally
             rec["copy_rtt_ms"] = (now - sent_at) * 1e3
             self.counters["copies_answered"] += 1
@@ -280,15 +296,24 @@ class FrameBook:
         return "edge_done"
 
     def _reply(self, rec: dict[str, Any], sent: float, now: float, service: float, queued_at_edge: float,
-               status: str) -> EdgeReply:
-        """The answer as the strategy sees it. A frame put before the previous (detected) one even
-        reached the edge waited behind it on the link: the gap between their answers is the link's
-        time for this frame's bytes, a sample of the rate it delivers (frames put later would count
-        idle time too). Put, not handed to the sender (``sent``): a robot under a CPU quota may stall
-        between the two for most of a scheduling period (100 ms), and a gap that holds the stall is
-        no sample of the link (an unconstrained link once read 100 ms per raw frame so, and frames
-        went as JPEG)."""
+               status: str, edge: str, arrival: float) -> EdgeReply:
+        """The answer as the strategy sees it. A frame put before the previous one even reached the
+        edge waited behind it on the link: the gap between their arrivals is the link's time for
+        this frame's bytes, a sample of the rate it delivers (frames put later would count idle
+        time too). From an edge that stamps the arrival (``arrival``, its clock), the gap between
+        the stamps (robot/linkclock.py); from an older one, between the two answers, which also
+        holds the edge's service times and the robot's stalls. Put, not handed to the sender
+        (``sent``): a robot under a CPU quota may stall between the two for most of a scheduling
+        period (100 ms), and a gap that holds the stall is no sample of the link."""
         nbytes = float(rec.get("bytes", NAN))
+        put = float(rec.get("put", sent))
+        link, excess = self.link_clock.answered(edge, arrival, float(rec.get("put_mono", NAN)),
+                                                int(rec.get("put_n", -1)), now)
+        stamped = math.isfinite(arrival)
+        self.counters["answers_stamped"] += stamped
+        if stamped != self._stamped:  # the encodings' base latency is the other kind of time
+            self.encodings.base.samples.clear()
+            self._stamped = stamped
         if status != "ok":  # an overflowing edge answers at once: no sample of its pace
             if rec.get("trial"):  # nor of the link: the trial is over, tried again later
                 if status == "dropped":  # a newer frame came behind it: says nothing of the link
@@ -297,10 +322,10 @@ class FrameBook:
                     self._encoding_lost(rec, now)
                 nbytes = NAN
             return EdgeReply(sent=sent, result=now, bytes=nbytes, service=service, status=status)
-        put = float(rec.get("put", sent))
         queued = put < self._last_arrival and self._last_answer < now
-        gap = now - self._last_answer if queued else NAN
-        rate = nbytes / gap if math.isfinite(nbytes) else NAN
+        gap = link if stamped else now - self._last_answer if queued else NAN
+        rec["link_ms"] = gap * 1e3  # the link's time for its bytes, when it queued (frames.csv)
+        rate = nbytes / gap if math.isfinite(nbytes) and gap > 0 else NAN
         self._last_answer = now
         edge_time = sum(x for x in (service, queued_at_edge) if math.isfinite(x))
         self._last_arrival = now - edge_time  # when it reached the edge, near enough (robot clock)
@@ -312,7 +337,7 @@ class FrameBook:
             # from the put when known (the encoding and any stall before it left out)
             if self.encodings.answered(rec["encoding"], other, put, now, edge_time,
                                        0.0 if "put" in rec else float(rec.get("encode_ms", NAN)) / 1e3,
-                                       service, gap):
+                                       service, gap, path=excess if stamped else None):
                 self._encoding_switched()
             other = other or rec["encoding"] != self.encodings.current
             if other:
@@ -345,6 +370,7 @@ class FrameBook:
         """The edge-presence watcher's news: the last edge gone books everything in flight lost."""
         self.edge_present = present
         if not present:
+            self.link_clock.reset()  # an edge that comes back may be another process, another clock
             self._drop_copies(list(self.copies), now)
             for seq in list(self.in_flight):
                 self._book_lost(seq, now)
@@ -445,4 +471,8 @@ class FrameBook:
             "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
             "edge_drains": getattr(self.strategy, "drains", None),  # dispatch's drains to measure the base
             "encodings": self.encodings.summary(),
+            # answers stamped with the frame's arrival (codec version 4), the link samples taken
+            # from them, and how often another edge clock made the link clock start again
+            "link_clock": {"stamped": self.counters["answers_stamped"], "samples": self.link_clock.samples,
+                           "resets": self.link_clock.resets},
         }

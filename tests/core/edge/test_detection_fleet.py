@@ -5,6 +5,7 @@ Zenoh, no model files."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -202,3 +203,25 @@ def test_first_in_first_out_takes_the_oldest_frames_across_robots() -> None:
     assert session.sent == [] and svc.counters["superseded"] == 0 and svc.balanced()
     with pytest.raises(ValueError, match="serve"):
         service(serve="latest")
+
+
+def test_the_answer_carries_the_arrival_only_for_a_robot_that_reads_version_4() -> None:
+    """A robot that said it reads codec version 4 gets each answer (served or dropped) stamped with
+    its frame's arrival on the edge's clock; an older robot's answers go without the field, as
+    version 2, which it reads. The edge's status says it reads 4."""
+    svc, session = service(queue=3)
+    assert svc.status()["wire.reads"] == max(wire.READS) == 4
+    before = time.monotonic()
+    put(svc, wire.encode(replace(frame("r1", 1), reads=4)))
+    put(svc, wire.encode(replace(frame("r1", 2), reads=4)))
+    put(svc, wire.encode(frame("r1", 3)))  # an older robot's frame (or one to an older edge's robot)
+    after = time.monotonic()
+    taken = svc._take()
+    for p in taken:
+        svc._serve(p, len(taken))
+    raw = {wire.decode(d, expect=wire.Detections).seq: d for k, d in session.sent if k.endswith("detections")}
+    answers = {seq: wire.decode(d, expect=wire.Detections) for seq, d in raw.items()}
+    assert {seq: a.status for seq, a in answers.items()} == {1: "dropped", 2: "dropped", 3: "ok"}
+    assert before <= answers[1].arrival <= answers[2].arrival <= after
+    assert math.isnan(answers[3].arrival)
+    assert msgpack.unpackb(raw[3], raw=False)["v"] == 2 and msgpack.unpackb(raw[1], raw=False)["v"] == 4

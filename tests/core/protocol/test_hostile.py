@@ -139,7 +139,7 @@ def test_version_1_messages_are_still_read() -> None:
     ack = wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.ScanAck)
     assert ack.epoch == 0 and ack.edge == ""
     with pytest.raises(wire.WireError, match="codec version"):
-        wire.decode(tamper("ack", v=4))
+        wire.decode(tamper("ack", v=max(wire.READS) + 1))
 
 
 def test_a_frame_goes_as_version_2_unless_it_was_shrunk() -> None:
@@ -178,6 +178,43 @@ def test_a_version_2_reader_reads_whole_frames_and_refuses_shrunk_ones(
     assert got.camera_size() == (2, 1) and got.data.tolist() == whole.data.tolist()
     with pytest.raises(wire.WireError, match="codec version 3"):
         wire.decode(data_shrunk, expect=wire.Frame)
+
+
+def test_a_frame_says_it_reads_version_4_and_only_its_answer_carries_the_arrival(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Version 4: a frame that says its robot reads 4 (only sent to an edge that said it reads 4),
+    and the arrival stamp in the answer to such a frame; a version-3 build reads everything sent
+    to a peer that did not say so."""
+    frame = wire.Frame(robot="r1", seq=1, send_stamp=1.0, capture_stamp=1.0, encoding="bgr8", width=2,
+                       height=1, data=np.zeros(6, np.uint8))
+    assert msgpack.unpackb(wire.encode(frame), raw=False)["v"] == 2 and frame.reads == 3
+    says = dataclasses.replace(frame, reads=4)
+    obj = msgpack.unpackb(wire.encode(says), raw=False)
+    assert obj["v"] == 4 and obj["reads"] == 4
+    assert wire.decode(wire.encode(says), expect=wire.Frame).reads == 4
+    answer = wire.Detections(robot="r1", seq=1, send_stamp=1.0, edge="e1", model="m", status="ok",
+                             infer_time=0.05, queue_time=0.0, batch=1, boxes=np.zeros((0, 4), np.float32),
+                             scores=np.zeros(0, np.float32), classes=np.zeros(0, np.int32))
+    plain = msgpack.unpackb(wire.encode(answer), raw=False)  # NaN, the default: not sent
+    assert plain["v"] == 2 and "arrival" not in plain
+    assert math.isnan(wire.decode(wire.encode(answer), expect=wire.Detections).arrival)
+    stamped = dataclasses.replace(answer, arrival=1234.5)
+    assert msgpack.unpackb(wire.encode(stamped), raw=False)["v"] == 4
+    assert wire.decode(wire.encode(stamped), expect=wire.Detections).arrival == 1234.5
+    for bad in (float("inf"), 2e12, "x"):
+        obj = {**msgpack.unpackb(wire.encode(stamped), raw=False), "arrival": bad}
+        with pytest.raises(wire.WireError, match="arrival"):
+            wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Detections)
+    for bad_reads in (0, 2_000, 3.5):
+        obj = {**msgpack.unpackb(wire.encode(says), raw=False), "reads": bad_reads}
+        with pytest.raises(wire.WireError, match="reads"):
+            wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Frame)
+    monkeypatch.setattr(wire, "READS", (1, 2, 3))  # a version-3 build
+    assert wire.decode(wire.encode(frame), expect=wire.Frame).seq == 1
+    assert wire.decode(wire.encode(answer), expect=wire.Detections).seq == 1
+    for newer in (says, stamped):
+        with pytest.raises(wire.WireError, match="codec version 4"):
+            wire.decode(wire.encode(newer))
 
 
 def test_times_survive_the_u16_coding() -> None:
