@@ -22,9 +22,11 @@ message is sent as the lowest version that carries its fields away from their de
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
 detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival only in the
-answer to a frame that said so. So a version-2 or -3 build on either side reads everything this
-one sends it. Decoding is lenient about the label: a message is read by its fields (each
-checked), whatever version between 1 and 4 it says it is.
+answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
+everything this one sends it (a passive listener of an older build, such as its viewer, refuses
+the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
+about the label: a message is read by its fields (each checked), whatever version between 1 and 4
+it says it is.
 """
 
 from __future__ import annotations
