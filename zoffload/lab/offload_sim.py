@@ -62,14 +62,14 @@ class SimConfig:
     edge_sigma: float = 0.2
     edge_queue: int = 2
     edge_serve: str = "newest"  # which waiting frame the edge's detector takes (edge/detection.py)
-
-    def __post_init__(self) -> None:
-        if self.edge_serve not in ("newest", "oldest"):
-            raise ValueError(f"edge_serve must be 'newest' or 'oldest', not {self.edge_serve!r}")
     edge_slowdown: float = 0.1  # the edge detector runs this much slower while the robot's runs
     reply_timeout: float = 0.5
     link_queue: float = 0.1  # s of transmission the emulator queues before it stops reading
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.edge_serve not in ("newest", "oldest"):
+            raise ValueError(f"edge_serve must be 'newest' or 'oldest', not {self.edge_serve!r}")
 
 
 @dataclass

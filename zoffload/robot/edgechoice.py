@@ -43,10 +43,15 @@ class DetectorLoad:
     reads: int = 3  # the newest codec version the edge said it reads
 
 
-def _side(value: float | None) -> int | None:
+def _whole(value: float | None, lo: int, hi: int) -> int | None:
+    """A status value that is a whole number within [lo, hi], else None (not believed)."""
     if value is None or not math.isfinite(value) or value != int(value):
         return None
-    return int(value) if INPUT_SIDES[0] <= value <= INPUT_SIDES[1] else None
+    return int(value) if lo <= value <= hi else None
+
+
+def _side(value: float | None) -> int | None:
+    return _whole(value, *INPUT_SIDES)
 
 
 class EdgeChoice:
@@ -77,9 +82,7 @@ class EdgeChoice:
         if w is not None and h is not None:
             load.input_hw, load.stretch = (h, w), values.get(STRETCH, 0.0) == 1.0
         # each status is the whole picture: an edge restarted as an older build stops saying it
-        reads = values.get(READS)
-        ok = reads is not None and math.isfinite(reads) and reads == int(reads) and 1 <= reads <= 1_000
-        load.reads = int(reads) if ok and reads is not None else 3
+        load.reads = _whole(values.get(READS), 1, 1_000) or 3
 
     def reads(self, edge: str) -> int:
         """The codec version to tell ``edge`` this robot reads: 4 when the edge reads 4 too (it then
