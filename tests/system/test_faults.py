@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -52,11 +53,13 @@ def run_faults(tmp: Path, restarts: int, flaps: int) -> None:
             edges.append(Proc(edge_cmd, tmp / "edge0.log"))
             wait_token(s, KEYS.edge_alive("edge1"), 60)
             status = StatusWatcher(s, KEYS, "robot1")
-            scans = int((max(trace_s, 6.0 * restarts) + 15) * 10)  # 10 Hz, long enough for every fault
+            # 10 Hz, long enough for every fault (a restart took 4 s here, so 6 s is room for a busy machine)
+            scans = int((max(trace_s, 6.0 * restarts) + 4) * 10)
             robot = Proc(script("zoffload-robot") + client_args
                          + ["-e", f"tcp/127.0.0.1:{link_port}", "--max-scans", str(scans), "--replay", "loop",
                             "--out", str(tmp / "robot")], tmp / "robot.log")
             wait_for(lambda: status.values.get("acked", 0) >= 10, 60, "the robot's first acks")
+            t0 = time.monotonic()
             for k in range(1, restarts + 1):
                 assert robot.p.poll() is None, f"the robot finished before restart {k}: raise its scans"
                 edges[-1].p.kill()  # no goodbye
@@ -71,6 +74,7 @@ def run_faults(tmp: Path, restarts: int, flaps: int) -> None:
                 except AssertionError:
                     tail = robot.text()[-3000:]
                     raise AssertionError(f"stuck after restart {k}: {status.values}\n{tail}") from None
+                print(f"restart {k} resumed at {time.monotonic() - t0:.1f} s of {scans / 10:.0f}", flush=True)
             assert robot.wait(scans / 10 + 120) == 0, robot.text()[-3000:]
             status.close()
         metrics = json.loads((tmp / "robot" / "robot_metrics.json").read_text())

@@ -29,7 +29,7 @@ pytest.importorskip("zoffload.robot.fleet", reason="the robot's fleet link (issu
 
 ROBOTS = ("robot1", "robot2", "robot3")
 EDGES = ("edge1", "edge2")
-SCANS = 100
+SCANS = 75
 # 5 Hz and a fixed 8 cm grid: three robots and two edges share this small, busy machine, and a pose
 # gap here should measure the failover, not an edge falling behind its load (window drops)
 ROBOT = ["--rate", "5", "--scale-policy", "fixed", "--voxel", "0.08"]

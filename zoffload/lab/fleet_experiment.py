@@ -258,12 +258,12 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
             for e in edges:
                 fleet.start_edge(e)
             for e in edges:
-                if not wait_token(session, KEYS.edge_alive(e), 60):
+                if not wait_token(session, KEYS.edge_alive(e), 60, alive=fleet.edges[e].running):
                     raise StartError(f"{e} did not come up:\n" + fleet.edges[e].tail())
             for i, r in enumerate(robots):
                 fleet.start_robot(r, i, seed, traces.get(r))
             for r in robots:
-                if not wait_token(session, KEYS.robot_alive(r), 60):
+                if not wait_token(session, KEYS.robot_alive(r), 60, alive=fleet.robots[r].running):
                     raise StartError(f"{r} did not come up:\n" + fleet.robots[r].tail())
             t0, wall0 = time.monotonic(), time.time()
             pending = list(events)

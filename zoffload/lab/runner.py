@@ -34,6 +34,9 @@ class Spawned:
         self.proc = subprocess.Popen([sys.executable, "-m", "zoffload.cli", *args],
                                      stdout=self._log, stderr=subprocess.STDOUT, env=env)
 
+    def running(self) -> bool:
+        return self.proc.poll() is None
+
     def stop(self, timeout: float = 20.0) -> int:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
@@ -62,11 +65,19 @@ def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60
     return None
 
 
-def wait_token(session: zenoh.Session, key: str, timeout: float) -> bool:
+def wait_token(session: zenoh.Session, key: str, timeout: float,
+               alive: Callable[[], bool] | None = None) -> bool:
+    """Wait for a liveliness token on ``key``; with ``alive``, give up as soon as it says the process
+    that should declare it has gone (an edge that could not listen exits at once, and a peer session
+    opens even when its connect is refused, so only the process's exit tells)."""
     seen = threading.Event()
     sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
+    deadline = time.monotonic() + timeout
     try:
-        return seen.wait(timeout)
+        while not seen.wait(min(0.2, max(0.0, deadline - time.monotonic()))):
+            if time.monotonic() >= deadline or (alive is not None and not alive()):
+                return seen.is_set()
+        return True
     finally:
         sub.undeclare()
 
@@ -243,7 +254,7 @@ def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace:
             status = StatusWatcher(session, keys, robot.robot_id)
             if on_watch is not None:  # e.g. the live view, on this watching session
                 on_watch(session)
-            if not wait_token(session, keys.any_edge_alive(), 30):
+            if not wait_token(session, keys.any_edge_alive(), 30, alive=edge_p.running):
                 raise StartError("the edge did not come up:\n" + edge_p.tail())
             robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
             cut_short = False

@@ -164,7 +164,7 @@ def run_soak(opts: SoakOptions) -> SoakSummary:
     try:
         with sigterm_interrupts():  # SIGTERM stops the daemons and writes what was measured, as Ctrl-C
             session = connect_when_listening(loopback_zenoh(connect=[loopback_endpoint(port)]), edge_p)
-            if session is None or not wait_token(session, keys.any_edge_alive(), 60):
+            if session is None or not wait_token(session, keys.any_edge_alive(), 60, alive=edge_p.running):
                 raise RuntimeError("the edge did not start:\n" + edge_p.tail())
             with session:
                 robot_status = StatusWatcher(session, keys, robot.robot_id)
