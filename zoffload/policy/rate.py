@@ -16,15 +16,14 @@ The DQN sees only ``[T, v]``. This policy also uses:
 scans arrive on time it grows 5 % per period. A scan late for its slot (T above the deadline times
 the periods it was meant to take) is one of three kinds (``late_cause``):
 
-* it queued (``size``: its network time rose above all the last scans', or stands more than its
-  slot above the link's quickest of the last 10 s, a queue that has stood or one building after an
-  outage's long scan): the budget drops at once to what the measured delivery rate carries in
-  one period (times ``margin``), never above 80 % of before nor below half;
+* it queued (``size``: its network time rose above all the last scans'): the budget drops at
+  once to what the measured delivery rate carries in one period (times ``margin``), never above
+  80 % of before nor below half;
 * its delay moved within the link's jitter (``jitter``): held. Cutting would not have saved it,
   and on a jittery link the cuts otherwise balance growth at a late share of
   ln(1+g) / (ln(1+g) - ln(1-c)) (18 % for g = 5 %, c = 20 %, tests/core/policy/test_rate.py) with
   the budget far below what the link carries (README "Ours");
-* the scans that were in flight through a stall (``stall``): held.
+* the first scan after a stall (``stall``): held.
 
 Growth stops at what the link has shown it carries (``validated``): 1.5 times the largest recent
 scan, or the bytes per period a scan moved at (its bytes over its network time), whichever is
@@ -140,9 +139,6 @@ def robust_sd(xs: Sequence[float]) -> float:
     return 1.4826 * _median([abs(x - m) for x in xs])
 
 
-BASE_ACKS = 100  # acks (10 s at 10 Hz) whose quickest network time is the link's base (late_cause)
-
-
 def late_cause(recent: Sequence[AckInfo], period: float) -> str:
     """Why the newest of ``recent`` (late for its slot) was late. ``"size"``: its network time
     rose above every one of the last 20 scans' (by 2 % of a period): it queued, because its bytes
@@ -150,17 +146,9 @@ def late_cause(recent: Sequence[AckInfo], period: float) -> str:
     set against what the link's jitter has done lately, not against the change of bytes alone: on
     a fat link a bigger scan costs no time). ``"jitter"``: otherwise; its delay moved within what
     the link's jitter does, and a smaller scan would not have arrived earlier (arrivals that keep
-    jittering late get a longer slot: ``jitter_slots``). Also ``"size"``: its network time is more
-    than its slot above the quickest of the last ``BASE_ACKS`` scans'."""
+    jittering late get a longer slot: ``jitter_slots``)."""
     nets = [a.net for a in recent[-21:-1] if math.isfinite(a.net)]
     if len(nets) < 5 or recent[-1].net > max(nets) + 0.02 * period:
-        return "size"
-    # A queue that has stood for a while is not above the last scans' (they queued too), nor is a
-    # queue building under the long network time of the scan after an outage: it is above the
-    # link's quickest recent network time (its delay and a small scan's transfer) by more than its
-    # slot. Jitter moves a delay by tens of milliseconds, not by a period.
-    base = min(a.net for a in recent[-BASE_ACKS:-1] if math.isfinite(a.net))
-    if recent[-1].net - base > recent[-1].slot * period:
         return "size"
     return "jitter"
 
@@ -211,7 +199,7 @@ class LinkAwareScale:
         self._curve_n = 1  # points of the scan the curve last learnt from
         self._scans = 0
         self._skip_left = 0
-        self._stalled = 0  # acks still to come of the scans in flight when a stall was seen
+        self._stalled = False  # skipped for a stall since the last ack
         self.event = ""  # what the last new ack did to the budget
         self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "passes": 0}
         return self.start
@@ -224,8 +212,7 @@ class LinkAwareScale:
     # Budget
     def update_budget(self, link: LinkView) -> float:
         """Move the budget with a new ack: grown while scans arrive on time; for a scan late for
-        its slot, cut (``size``) or held (``jitter``, or one in flight through a ``stall``):
-        ``late_cause``."""
+        its slot, cut (``size``) or held (``jitter``, the first after a ``stall``): ``late_cause``."""
         if link.acks >= 0:
             if link.acks == self._acks_seen:
                 return self.budget  # nothing new from the edge
@@ -234,8 +221,7 @@ class LinkAwareScale:
         slot = max(1, link.last_slot)
         late = link.last_t > deadline * slot
         self.event = ""
-        stalled = self._stalled > 0  # queued through the stall: late, whatever their size
-        self._stalled = max(0, self._stalled - 1)
+        stalled, self._stalled = self._stalled, False
         if late:
             cause = "stall" if stalled else (
                 late_cause(link.recent, link.period) if self.jitter_aware else "size")
@@ -298,7 +284,7 @@ class LinkAwareScale:
         self.update_budget(link)
         event = f"{self.event}; " if self.event else ""
         if self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after:
-            self._stalled = max(self._stalled, link.in_flight)
+            self._stalled = True
             return Decision(self.last_voxel, skip=True, cause="stall",
                             reason=f"{event}stall: no ack for {link.since_ack:.2f} s")
         if self._skip_left > 0:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from zoffload.policy.rate import BASE_ACKS, AckInfo
+from zoffload.policy.rate import AckInfo
 from zoffload.protocol import wire
 from zoffload.robot.scanlog import ScanLog
 
@@ -44,8 +44,7 @@ class ScanLedger:
     interarrivals_seen: int = 0  # how many acks have brought a T (a policy reacts to new ones)
     last_ack_at: float = -math.inf  # robot clock of the newest ack, any status
     first_acked_at: float | None = None  # robot clock of the first scan acked "ok"
-    recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=BASE_ACKS))  # acked scans
-    recent_rtt: deque[float] = field(default_factory=lambda: deque(maxlen=BASE_ACKS))  # theirs [s]
+    recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
     _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
     _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
 
@@ -137,7 +136,6 @@ class ScanLedger:
                 _pose_known(rec)
                 nbytes = int(rec.get("bytes") or 0)
                 self.recent.append(AckInfo(nbytes, rtt - edge_time, ack.interarrival, slot))
-                self.recent_rtt.append(rtt)
                 self._acked_bytes.append((recv_stamp, nbytes))
                 if self.first_acked_at is None:
                     self.first_acked_at = recv_stamp
@@ -185,18 +183,6 @@ class ScanLedger:
     @property
     def in_flight(self) -> int:
         return len(self.pending)
-
-    def window(self, least: int, period: float, most: int) -> int:
-        """Unanswered scans allowed: ``least`` (``max_in_flight``), or more where the link's
-        quickest recent round trip alone keeps more scans a period apart in flight (plus one): the
-        window is there to bound a queue, not the link's latency. At 10 Hz a cellular uplink's
-        0.22 s round trip (delay both ways, a scan's transfer, the edge's registration) keeps three
-        scans in flight with no queue at all, and a window of three dropped scans the link had room
-        for. ``most`` bounds it (the scans the ack timeout can see)."""
-        if not self.recent_rtt or period <= 0:
-            return least
-        need = math.ceil(min(self.recent_rtt) / period) + 1
-        return max(least, min(need, most))
 
     def balance(self) -> dict[str, int]:
         c = self.counters

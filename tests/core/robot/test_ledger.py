@@ -5,7 +5,6 @@ import math
 import numpy as np
 import pytest
 
-from zoffload.policy.rate import BASE_ACKS
 from zoffload.protocol import wire
 from zoffload.robot.ledger import ScanLedger
 
@@ -74,17 +73,15 @@ def test_refused_scans_their_own_bucket_and_scans_with_the_sender_in_theirs() ->
 
 def test_the_link_figures_the_policy_reads() -> None:
     led = ScanLedger()
-    n = BASE_ACKS + 6
-    for seq in range(n):
+    for seq in range(30):
         led.produced()
-        led.published(seq, 100.0 + 0.1 * seq, {"bytes": 1000, "skipped": 1 if seq == n - 1 else 0})
-        led.on_ack(ack(seq, 100.0 + 0.1 * seq, t=0.2 if seq == n - 1 else 0.1), 100.05 + 0.1 * seq)
-    assert len(led.recent) == BASE_ACKS and led.recent[-1].slot == 2 and led.last_slot == 2
+        led.published(seq, 100.0 + 0.1 * seq, {"bytes": 1000, "skipped": 1 if seq == 29 else 0})
+        led.on_ack(ack(seq, 100.0 + 0.1 * seq, t=0.2 if seq == 29 else 0.1), 100.05 + 0.1 * seq)
+    assert len(led.recent) == 24 and led.recent[-1].slot == 2 and led.last_slot == 2
     assert led.recent[-1].net == pytest.approx(0.05 - 0.021)
-    end = 100.0 + 0.1 * n
-    assert led.acked_bytes_per_s(end) == 10 * 1000  # acks of the last second
+    assert led.acked_bytes_per_s(103.0) == 10 * 1000  # acks of the last second
     assert math.isnan(ScanLedger().acked_bytes_per_s(1.0))  # nothing acked yet: no rate
-    assert led.last_ack_at == pytest.approx(end - 0.05)
+    assert led.last_ack_at == pytest.approx(102.95)
 
 
 def test_local_scans_are_a_terminal_bucket_and_catch_up_poses_keep_their_bucket() -> None:
@@ -132,24 +129,3 @@ def test_a_scan_lost_while_later_ones_were_answered_is_counted_as_overtaken() ->
         led2.published(seq, send_stamp=100.0 + seq, record={"edge": "e2", "epoch": 2})
     assert led2.on_ack(ack(2, 102.0), 102.1) == "acked"
     assert led2.expire(now=110.0, timeout=1.0) == 2 and led2.counters["lost_overtaken"] == 2
-
-
-def test_the_window_widens_to_the_scans_the_round_trip_alone_keeps_in_flight() -> None:
-    """A fixed window of 3 at 10 Hz dropped scans on a cellular link whose quickest round trip was
-    0.22 s (three scans in flight without any queue). The window follows the quickest recent round
-    trip (+1), never below ``max_in_flight`` nor above what the ack timeout can see; a spell of
-    queued round trips does not widen it (the quickest of them counts)."""
-    led = ScanLedger()
-    assert led.window(3, 0.1, 10) == 3  # nothing answered yet
-    for seq, rtt in enumerate([0.35, 0.22, 0.30, 0.41, 0.26]):
-        led.produced()
-        led.published(seq, send_stamp=10.0 + seq, record={})
-        led.on_ack(ack(seq, 10.0 + seq), recv_stamp=10.0 + seq + rtt)
-    assert led.window(3, 0.1, 10) == 4  # ceil(0.22 / 0.1) + 1
-    assert led.window(5, 0.1, 10) == 5  # never below the setting
-    assert led.window(3, 0.05, 4) == 4  # 20 Hz: ceil(4.4) + 1 = 6, but the ack timeout sees 4
-    fast = ScanLedger()
-    fast.produced()
-    fast.published(0, send_stamp=1.0, record={})
-    fast.on_ack(ack(0, 1.0), recv_stamp=1.06)
-    assert fast.window(3, 0.1, 10) == 3  # a 60 ms link: the setting's 3
