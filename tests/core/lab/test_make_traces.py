@@ -20,7 +20,7 @@ def test_committed_traces_are_what_the_script_writes(tmp_path: Path) -> None:
 
 
 def test_cellular_is_a_bounded_random_walk_with_outages() -> None:
-    for name in ("cellular", "cellular-heldout"):
+    for name in ("cellular", "cellular-heldout", "cellular-3", "cellular-4", "cellular-5"):
         t = load_trace(name)
         live = [s for s in t.states if not s.outage]
         assert all(2.0 <= s.up_mbps <= 40.0 and 30 <= s.delay_ms <= 70 and 5 <= s.jitter_ms <= 20

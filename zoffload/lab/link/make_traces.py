@@ -12,7 +12,8 @@
 
 Each trace is written for two seeds: seed 1 (``cellular``, ``wifi-congested``), which the policy
 may be developed against, and seed 2 (``cellular-heldout``, ``wifi-congested-heldout``), which is
-for final tables only and must never be used to tune anything. Regenerate (the files are
+for final tables only and must never be used to tune anything; the cellular uplink also for seeds
+3-5 (``cellular-3`` ...), more development cases. Regenerate (the files are
 committed beside this script; the same seeds give the same files):
 
     python -m zoffload.lab.link.make_traces [--out zoffload/lab/link/traces]
@@ -101,6 +102,10 @@ TRACES: dict[str, tuple[Callable[[int], list[Row]], int, str]] = {
     "wifi-congested": (wifi_congested, 1, "congested shared Wi-Fi, seed 1 (development)"),
     "wifi-congested-heldout": (wifi_congested, 2,
                                "congested shared Wi-Fi, seed 2: HELD OUT, final tables only, never tuned on"),
+    # more development seeds of the cellular uplink (seed 4 spends half its time below 5 Mbps)
+    "cellular-3": (cellular, 3, "cellular uplink, seed 3 (development)"),
+    "cellular-4": (cellular, 4, "cellular uplink, seed 4 (development)"),
+    "cellular-5": (cellular, 5, "cellular uplink, seed 5 (development)"),
 }
 
 
