@@ -18,6 +18,7 @@ import math
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from types import FrameType
 
@@ -38,6 +39,7 @@ waits the shutdown bounds itself (the ROS 2 mapper's 15 s, the detector's 5 s, e
 5 s) so a slow but finishing stop is not cut. ``ZOFFLOAD_SHUTDOWN_LIMIT`` (seconds) sets it: the
 system tests use 20, under their own 30 s kill. An edge's drain on SIGTERM comes before it and has
 its own ``fleet.drain_timeout``."""
+WAIT_SLICE = 0.25  # seconds a signal handled on another thread may wait to run (StopSignal.wait)
 
 
 def shutdown_limit_env() -> float:
@@ -112,4 +114,14 @@ class StopSignal:
         self.event.set()
 
     def wait(self, timeout: float | None = None) -> bool:
-        return self.event.wait(timeout)
+        """Wait for the stop, ``timeout`` seconds at most (None: for ever), in slices: a signal that
+        the kernel hands to one of Zenoh's threads only sets Python's flag, and a main thread
+        blocked on the event for ever never returns to run the handler. ``zoffload router`` did
+        that: it slept through SIGINT until a test killed it 30 s later."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            step = WAIT_SLICE if deadline is None else min(WAIT_SLICE, max(0.0, deadline - time.monotonic()))
+            if self.event.wait(step):
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False

@@ -90,3 +90,33 @@ def test_a_stop_signal_it_did_not_install_bounds_nothing(monkeypatch: pytest.Mon
     with StopSignal(shutdown_limit=0.01).bounded_shutdown():
         pass
     assert armed == []
+
+
+# The signal lands on another thread (as it may on any of Zenoh's), the main thread waits for the
+# stop with no timeout; a watchdog ends the wait after 10 s whatever happens.
+OTHER_THREAD = textwrap.dedent("""
+    import signal, threading, time
+    from zoffload.runtime.lifecycle import StopSignal
+
+    stop = StopSignal().install()
+
+    def raise_here():
+        time.sleep(0.3)
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # delivered to this thread
+
+    threading.Thread(target=raise_here, daemon=True).start()
+    threading.Timer(10.0, stop.event.set).start()
+    t0 = time.monotonic()
+    stop.wait()
+    print(f"{time.monotonic() - t0:.2f} {stop._count}", flush=True)
+""")
+
+
+def test_a_signal_handled_on_another_thread_ends_a_wait_without_a_timeout() -> None:
+    """Was: ``zoffload router`` waited for its stop with no timeout, and a SIGINT the kernel gave
+    one of Zenoh's threads only set Python's flag: the main thread never woke to run the handler
+    (no "SIGINT received" in its log) until a test killed it 30 s later."""
+    out = subprocess.run([sys.executable, "-c", OTHER_THREAD], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+    waited, handled = out.stdout.split()
+    assert handled == "1" and float(waited) < 3.0, out.stdout  # the handler ran: not the watchdog
