@@ -19,6 +19,7 @@ import zenoh
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
+from zoffload.runtime.lifecycle import wait_in_slices
 from zoffload.runtime.loading import write_effective
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
@@ -56,7 +57,7 @@ def connect_when_listening(z: ZenohSettings, owner: Spawned, timeout: float = 60
     """Open a session once ``owner`` listens (its port opens a moment after it starts)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if owner.proc.poll() is not None:
+        if not owner.running():
             return None
         try:
             return open_session(z)
@@ -72,12 +73,8 @@ def wait_token(session: zenoh.Session, key: str, timeout: float,
     opens even when its connect is refused, so only the process's exit tells)."""
     seen = threading.Event()
     sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
-    deadline = time.monotonic() + timeout
     try:
-        while not seen.wait(min(0.2, max(0.0, deadline - time.monotonic()))):
-            if time.monotonic() >= deadline or (alive is not None and not alive()):
-                return seen.is_set()
-        return True
+        return wait_in_slices(seen, timeout, 0.2, None if alive is None else lambda: not alive())
     finally:
         sub.undeclare()
 

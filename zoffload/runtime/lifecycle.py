@@ -19,7 +19,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from types import FrameType
 
 from zoffload.runtime.errors import ExitCode
@@ -40,6 +40,20 @@ waits the shutdown bounds itself (the ROS 2 mapper's 15 s, the detector's 5 s, e
 system tests use 20, under their own 30 s kill. An edge's drain on SIGTERM comes before it and has
 its own ``fleet.drain_timeout``."""
 WAIT_SLICE = 0.25  # seconds a signal handled on another thread may wait to run (StopSignal.wait)
+
+
+def wait_in_slices(event: threading.Event, timeout: float | None, step: float,
+                   give_up: Callable[[], bool] | None = None) -> bool:
+    """``event.wait(timeout)`` (None: for ever), woken every ``step`` seconds: to run a signal
+    handler the main thread owes, and to return at once (the event's state) when ``give_up()``
+    says there is nothing left to wait for."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        left = step if deadline is None else min(step, max(0.0, deadline - time.monotonic()))
+        if event.wait(left):
+            return True
+        if (deadline is not None and time.monotonic() >= deadline) or (give_up is not None and give_up()):
+            return event.is_set()
 
 
 def shutdown_limit_env() -> float:
@@ -118,10 +132,4 @@ class StopSignal:
         the kernel hands to one of Zenoh's threads only sets Python's flag, and a main thread
         blocked on the event for ever never returns to run the handler. ``zoffload router`` did
         that: it slept through SIGINT until a test killed it 30 s later."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            step = WAIT_SLICE if deadline is None else min(WAIT_SLICE, max(0.0, deadline - time.monotonic()))
-            if self.event.wait(step):
-                return True
-            if deadline is not None and time.monotonic() >= deadline:
-                return False
+        return wait_in_slices(self.event, timeout, WAIT_SLICE)
