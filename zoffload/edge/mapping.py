@@ -24,6 +24,8 @@ first registered scan under that epoch and then every ``checkpoint_every`` scans
 another edge are only counted (``other_edge``: read from the payload without decoding it);
 scans under an epoch not attached here are refused. Draining and shedding ask the robot's worker
 for a final checkpoint, taken after its next registered scan, or at once if the robot is idle.
+A scan that carries the robot's own estimate (``Scan.prior``: it bridged an outage with its local
+odometry) after scans this mapper missed is predicted from it (``predicted_from_prior``).
 
 Every sample is counted once: ``samples`` = ``received`` + ``other_edge`` + the drops by reason
 (``bad_key``, ``refused``, ``malformed``, ``foreign``, ``callback_error``, ``stale_epoch``,
@@ -311,6 +313,11 @@ class MappingService:
             if rs.mapper is None:
                 rs.mapper = self.make_mapper(scan, rs.files.spill)
             self._continue(rs)
+            if scan.prior is not None and hasattr(rs.mapper, "predict_from"):
+                # The robot bridged scans this mapper missed: predict from its estimate
+                mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
+                if mapper.predict_from(scan.seq, scan.prior_seq, scan.prior[0], scan.prior[1]):
+                    self._count(rs, "predicted_from_prior")
             # Decodes a coded payload (WireError if it is corrupt); the per-point times, when the
             # scan carries them, deskew it if the mapper was made to
             points, times = scan.cloud_and_times(self.limits)

@@ -106,6 +106,9 @@ class BoundedMapper:
         self._trim()
         return seeded
 
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
+        return self.inner.predict_from(seq, prior_seq, pose, delta)
+
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False) -> wire.Checkpoint | None:
         """The odometry's state after its last scan; None before it has one."""

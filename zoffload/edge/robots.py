@@ -47,6 +47,8 @@ class FleetMapper(Mapper, Protocol):
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False) -> wire.Checkpoint | None: ...
 
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool: ...
+
 
 class MapperFactory(Protocol):
     """Makes a robot's mapper from its first scan: ``recipe.MapperRecipe``, or a stand-in."""

@@ -219,6 +219,9 @@ class EdgeServer:
         values.update(self.admission.status())
         values.update({f"ping.drop.{k}": float(v) for k, v in self.drops.snapshot().items()})
         values["heap_trims"] = float(self.trimmer.trims)
+        # The newest codec version this edge reads (a robot sends newer fields only to an edge
+        # that says it reads them: a scan's prior, a frame's arrival stamp)
+        values["wire.reads"] = float(max(wire.READS))
         return wire.Status(source="edge", id=self.settings.edge_id, stamp=time.time(), values=values)
 
     def main_loop(self) -> None:

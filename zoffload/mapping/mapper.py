@@ -218,6 +218,26 @@ class RobotMapper:
             self.last_seq = int(seqs[newer][-1])
         return seeded
 
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
+        """Take the robot's own estimate (its pose after scan ``prior_seq`` and its motion per scan
+        then, in this mapper's world frame) as the prediction for scan ``seq``, when this mapper
+        missed scans before ``seq`` that the estimate covers: over a gap the constant-velocity
+        model assumes the robot kept the motion it had, and a turn or stop during a second-long
+        outage puts the next scan metres off (KISS-ICP then converges to a wrong place). A
+        following scan (no gap), an estimate no newer than this mapper's last scan, or one older
+        than ``max_gap`` scans is ignored. Returns whether it was taken; the next ``register``
+        of ``seq`` predicts ``pose @ delta^(seq - prior_seq)``."""
+        last = self.last_seq
+        if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
+            return False
+        delta = as_rigid(np.asarray(delta, np.float64))
+        # The pose one period before the estimate, so that register() stretches the motion
+        # over (seq - prior_seq + 1) periods from there
+        self.odometry.last_pose = as_rigid(np.asarray(pose, np.float64) @ np.linalg.inv(delta))
+        self.odometry.last_delta = delta
+        self.last_seq = int(prior_seq) - 1
+        return True
+
     @property
     def map_points(self) -> int:
         return len(self.global_map)

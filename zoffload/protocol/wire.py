@@ -12,12 +12,14 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build reads 1 to 4. Version 2 only added fields with defaults (the assignment
+Versions: this build reads 1 to 5. Version 2 only added fields with defaults (the assignment
 epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
 attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
 (a frame shrunk to the edge detector's input). Version 4 added the codec version a frame's sender
 reads (``Frame.reads``) and, in the answer to a frame whose sender reads 4, the edge's clock when
-the frame arrived (``Detections.arrival``: the robot times the link by it, robot/frames.py). A
+the frame arrived (``Detections.arrival``: the robot times the link by it, robot/frames.py).
+Version 5 added a scan's prior (``Scan.prior``: the robot's own pose estimate while it bridged an
+overdue edge), which the robot sends only to an edge whose status says it reads 5. A
 message is sent as the lowest version that carries its fields away from their defaults, else as
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
@@ -25,7 +27,7 @@ detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival
 answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
 everything this one sends it (a passive listener of an older build, such as its viewer, refuses
 the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
-about the label: a message is read by its fields (each checked), whatever version between 1 and 4
+about the label: a message is read by its fields (each checked), whatever version between 1 and 5
 it says it is.
 """
 
@@ -41,7 +43,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4)
+READS = (1, 2, 3, 4, 5)
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
 RIGID_TOL = 1e-6  # a pose's rotation may be this far from orthonormal (float noise; consumers re-project)
@@ -127,9 +129,11 @@ class Num:
     nan: bool = False
 
 
-def _array(spec: ArraySpec, optional: bool = False) -> Any:
-    """An array field; an ``optional`` one may be absent on the wire (then it is None)."""
-    return field(default=None, metadata={"array": spec, "optional": optional})
+def _array(spec: ArraySpec, optional: bool = False, since: int = 1) -> Any:
+    """An array field; an ``optional`` one may be absent on the wire (then it is None), and is
+    left out while None; one added in a codec version above 2 (``since``) must be optional."""
+    assert since <= 2 or optional, "a field newer than version 2 must be optional"
+    return field(default=None, metadata={"array": spec, "optional": optional, "since": since})
 
 
 def _num(default: Any = dataclasses.MISSING, lo: float = -math.inf, hi: float = math.inf,
@@ -181,6 +185,18 @@ class Scan(Message):
     time_span: float = _num(0.0, lo=0.0, hi=10.0)  # seconds the points' times cover; 0 = no times
     times: np.ndarray | None = _array(ArraySpec("<u2", (-1,), cap="max_points"), optional=True)  # f32
     edge: str = _text("", max_len=ID_MAX)  # the edge the robot is attached to ("": no attach protocol)
+    # Version 5: the robot's own estimate while its edge's answers were overdue (robot/localpose.py):
+    # its local odometry's pose after scan ``prior_seq`` (in the edge's world frame) and its motion
+    # per scan period then. An edge that missed the scans before this one predicts from it
+    # instead of stretching its constant-velocity model over the gap (mapping/mapper.py).
+    prior_seq: int = _num(-1, lo=-1, hi=SEQ_MAX, since=5)
+    prior: np.ndarray | None = _array(ArraySpec("<f8", (2, 4, 4), values="rigid"), optional=True, since=5)
+
+    def __post_init__(self) -> None:
+        if (self.prior is None) != (self.prior_seq < 0):
+            raise WireError("scan: a prior needs both its scan number and its pose and motion")
+        if self.prior_seq > self.seq:
+            raise WireError(f"scan {self.seq}: a prior from a later scan ({self.prior_seq})")
 
     def cloud(self, limits: Limits = DEFAULT_LIMITS) -> np.ndarray:
         """The scan's points as float32 (n, 3), decoded if coded; ``WireError`` if it cannot be."""
@@ -477,13 +493,13 @@ def encode(msg: Message) -> bytes:
     for f in dataclasses.fields(msg):  # type: ignore[arg-type]
         value = getattr(msg, f.name)
         since = f.metadata.get("since", 1)
-        if since > 2:
-            if value == f.default or _both_nan(value, f.default):
-                continue  # a version-2 reader would refuse the field: not sent at its default
-            out["v"] = max(out["v"], since)
         spec = f.metadata.get("array")
         if spec is not None and value is None and f.metadata.get("optional"):
             continue
+        if since > 2:
+            if spec is None and (value == f.default or _both_nan(value, f.default)):
+                continue  # a version-2 reader would refuse the field: not sent at its default
+            out["v"] = max(out["v"], since)
         if spec is not None:
             value = _enc_array(spec.check(f.name, np.asarray(value)))
         elif isinstance(value, (np.floating, np.integer, np.bool_)):

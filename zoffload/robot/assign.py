@@ -29,6 +29,7 @@ class EdgeInfo:
     robots: int = 0  # robots it maps now
     draining: bool = False  # leaving: takes no new robot
     refused_until: float = -math.inf  # it refused us: not asked again before this time
+    reads: int = 3  # the newest codec version it said it reads (``wire.reads``; 3: not said)
 
     @property
     def free(self) -> float:
@@ -80,7 +81,7 @@ class Assignment:
             return True
         return False
 
-    def edge_status(self, edge: str, capacity: float, robots: float, draining: bool) -> bool:
+    def edge_status(self, edge: str, capacity: float, robots: float, draining: bool, reads: int = 3) -> bool:
         """An edge's load; True when our edge (attached or being asked) is draining. An edge being
         asked is left at once; an attached one is kept until its final checkpoint moves the robot
         (``FleetState`` times that wait)."""
@@ -88,6 +89,7 @@ class Assignment:
         if info is None:
             return False  # status of an edge whose token we do not hold: not live
         info.capacity, info.robots, info.draining = int(capacity), int(robots), draining
+        info.reads = reads
         if draining and edge == self.edge:
             if self.state != ATTACHED:
                 self._drop()

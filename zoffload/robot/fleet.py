@@ -101,8 +101,10 @@ class FleetState:
         with self._lock:
             a = self.assignment
             was = a.state == ATTACHED
+            reads = values.get("wire.reads", 3.0)
             if not a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
-                                 values.get("draining", 0.0) > 0.5):
+                                 values.get("draining", 0.0) > 0.5,
+                                 int(reads) if math.isfinite(reads) and 1 <= reads <= 1_000 else 3):
                 return False
             if a.state == ATTACHED:  # our edge drains: wait for its final checkpoint
                 if self._drain_seen is None:
@@ -134,6 +136,12 @@ class FleetState:
         with self._lock:
             a = self.assignment
             return (a.edge, a.epoch) if a.state == ATTACHED and a.edge is not None else None
+
+    def reads(self, edge: str) -> int:
+        """The newest codec version ``edge`` said it reads (3 when it has not said)."""
+        with self._lock:
+            info = self.assignment.edges.get(edge)
+            return info.reads if info is not None else 3
 
     def current(self, edge: str, epoch: int) -> bool:
         with self._lock:

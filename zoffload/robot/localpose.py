@@ -9,9 +9,12 @@ Two situations, one light KISS-ICP (robot/odometry.py):
   tell a dead edge from a slow one, so it keeps sending and also registers each scan itself
   (the scan's bucket is still what its ack makes it; its pose is the local one until an ack gives
   the edge's). That covers the second or so before a failover, which otherwise left every scan
-  sent to a dead edge without a pose. Bridging ends with the next scan after an ack under the
-  current assignment; the poses it found go to the next edge in the attach (the odometry's
-  snapshot).
+  sent to a dead edge without a pose. Bridging ends with the next scan once the edge answers
+  again and has acked a scan of the bridge (a late ack of a scan sent before the outage says
+  nothing of the scans the edge missed); the poses it found go to the next edge in the attach
+  (the odometry's snapshot), and each bridged scan carries its own to the same edge
+  (``Scan.prior``, codec version 5: an edge that missed the scans before it predicts it from
+  that, mapping/mapper.py ``predict_from``).
 
 And when the robot has moved because its edge's token went (a dead process: the move is at once,
 no bridging happened), the scans in flight to it are registered here at the first scan under the
@@ -38,7 +41,7 @@ import numpy as np
 
 from zoffload.robot.fleet import FleetState
 from zoffload.robot.ledger import ScanLedger
-from zoffload.robot.odometry import LocalOdometry
+from zoffload.robot.odometry import MAX_GAP, LocalOdometry
 from zoffload.robot.sensor import Reading
 
 log = logging.getLogger("zoffload.robot.localpose")
@@ -64,10 +67,17 @@ class PoseKeeper:
         self._target: tuple[str, int] | None = None  # the assignment of the last scan sent
         self._edge_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=2)  # newest acked, ascending
         self.pose: tuple[np.ndarray, float] | None = None  # the newest pose, its source (0 edge, 1 local)
+        # The bridge's first scan, until the edge acks it or a later one (the bridge and its priors
+        # may end then)
+        self._bridge_from: int | None = None
+        # The newest bridged registration (seq, pose, motion per period), for ``prior_for``
+        self._local: tuple[int, np.ndarray, np.ndarray] | None = None
 
     # The ack callback (caller holds the lock)
     def edge_pose(self, seq: int, pose: np.ndarray) -> None:
         """An acked scan's pose (none from an edge that does not map: all NaN, not kept)."""
+        if self._bridge_from is not None and seq >= self._bridge_from:
+            self._bridge_from, self._local = None, None  # the edge answered a scan of the bridge
         if not np.isfinite(pose).all():
             return
         if not self._edge_poses or seq > self._edge_poses[-1][0]:
@@ -100,6 +110,8 @@ class PoseKeeper:
         if odo is None:
             return False
         self._bridging, self._target = False, None
+        with self.lock:  # the next attach hands this period's poses over
+            self._bridge_from, self._local = None, None
         if not odo.active:
             self._begin(reading.seq, "no edge")
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
@@ -111,16 +123,25 @@ class PoseKeeper:
     def attached(self, reading: Reading, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
         """An edge maps the robot (``target``: edge, epoch): hold the scan for a catch-up, and while
         the edge's acks are overdue register it here as well; returns (pose, cpu ms) to book once
-        the scan has its record (``book_bridged``), or None."""
+        the scan has its record (``book_bridged``), or None. A bridge lasts until the edge is no
+        longer overdue *and* has acked a scan of the bridge: an ack of a scan sent before the
+        outage (delivered late) says nothing about the scans the edge missed. Every bridged scan
+        goes out with its local pose and the odometry's motion (``prior_for``): an edge that
+        missed the scans before it predicts it from them."""
         odo = self.odometry
         if odo is None:
             return None
         previous, self._target = self._target, target
-        if previous is not None and previous != target and not odo.active and not self.alive(previous[0]):
-            # moved off a dead edge: what was in flight to it will not be answered
-            self._begin(reading.seq, f"edge {previous[0]} gone")
-            odo.end()
-        if not self._overdue(time.monotonic()):
+        if previous is not None and previous != target:
+            with self.lock:  # another assignment: the attach handed the poses over
+                self._bridge_from, self._local = None, None
+            if not odo.active and not self.alive(previous[0]):
+                # moved off a dead edge: what was in flight to it will not be answered
+                self._begin(reading.seq, f"edge {previous[0]} gone")
+                odo.end()
+        with self.lock:
+            answered = self._bridge_from is None
+        if answered and not self._overdue(time.monotonic()):
             if odo.active:
                 odo.end()  # an edge answers (again)
                 self._bridging = False
@@ -130,9 +151,25 @@ class PoseKeeper:
             self._begin(reading.seq, "acks overdue")
         if not self._bridging:
             self._bridging, self.bridges = True, self.bridges + 1
+            with self.lock:
+                self._bridge_from = reading.seq
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         self.bridged += 1
+        with self.lock:
+            self._local = (reading.seq, pose, odo.motion)
         return pose, cpu
+
+    def prior_for(self, seq: int) -> tuple[int, np.ndarray] | None:
+        """What scan ``seq`` carries to the edge (``Scan.prior``): the newest scan the local
+        odometry registered in the last bridge (``seq`` itself while bridging), its pose and the
+        odometry's motion per period then, (prior_seq, (2, 4, 4)); None once the edge has acked a
+        scan of that bridge, or when it is ``MAX_GAP`` scans old. The edge uses it only after
+        scans it missed."""
+        with self.lock:
+            local = self._local
+            if local is None or seq - local[0] >= MAX_GAP:
+                return None
+            return local[0], np.stack([local[1], local[2]])
 
     def book_bridged(self, seq: int, pose: np.ndarray, cpu: float) -> None:
         """The local pose of a scan sent (or dropped at source) while bridging."""

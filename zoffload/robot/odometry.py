@@ -72,6 +72,7 @@ class LocalOdometry:
         self._lock = threading.Lock()
         self._checkpoint: wire.Checkpoint | None = None  # our own, the newest
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_LOCAL_POSES)
+        self.motion = np.eye(4)  # the motion per scan period after the last registration
 
     # The ring (loop thread, while attached)
     def hold(self, seq: int, points: np.ndarray, stamp: float) -> None:
@@ -149,6 +150,7 @@ class LocalOdometry:
             if stretch:
                 odo.last_delta = as_rigid(se3_power(odo.last_delta, 1.0 / gap))  # type: ignore[attr-defined]
             pose = np.array(odo.last_pose, np.float64)  # type: ignore[attr-defined]
+            self.motion = np.array(odo.last_delta, np.float64)  # type: ignore[attr-defined]
             self._last_seq = seq
             self._poses.append((seq, pose))
             self._since_checkpoint += 1

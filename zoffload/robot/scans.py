@@ -98,6 +98,7 @@ class _Outgoing:
     cpu_loop: float  # seconds of the loop thread's CPU for this scan
     edge: str = ""
     epoch: int = 0
+    prior: tuple[int, np.ndarray] | None = None  # the robot's own estimate (bridging): ``Scan.prior``
 
 
 class ScanStreamer:
@@ -283,7 +284,10 @@ class ScanStreamer:
         # Hand over to the sender thread: the loop goes back to the sensor whatever the link does
         with self._lock:
             self.ledger.handed_off(reading.seq, record)
-        out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop, *target)
+        prior = None  # the robot's own estimate, for an edge that missed scans (reads codec 5)
+        if self.poses is not None and self.fleet_state is not None and self.fleet_state.reads(target[0]) >= 5:
+            prior = self.poses.prior_for(reading.seq)
+        out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop, *target, prior)
         replaced = self.sender.offer(out)
         if replaced is not None:
             with self._lock:
@@ -308,7 +312,7 @@ class ScanStreamer:
                 sized, robot=o.robot_id, seq=item.seq, send_stamp=send_stamp,
                 capture_stamp=item.capture_stamp, voxel_max=o.voxel_range[1],
                 max_range=self.source.max_range, n_raw=item.n_raw, skipped=skipped, edge=item.edge,
-                epoch=item.epoch))
+                epoch=item.epoch, prior=item.prior))
             with self._lock:
                 self.ledger.published(item.seq, send_stamp, {"bytes": len(data), "skipped": skipped,
                                                              "compressed": compressed})

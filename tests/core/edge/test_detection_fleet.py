@@ -210,7 +210,7 @@ def test_the_answer_carries_the_arrival_only_for_a_robot_that_reads_version_4() 
     its frame's arrival on the edge's clock; an older robot's answers go without the field, as
     version 2, which it reads. The edge's status says it reads 4."""
     svc, session = service(queue=3)
-    assert svc.status()["wire.reads"] == max(wire.READS) == 4
+    assert svc.status()["wire.reads"] == max(wire.READS) >= 4
     before = time.monotonic()
     put(svc, wire.encode(replace(frame("r1", 1), reads=4)))
     put(svc, wire.encode(replace(frame("r1", 2), reads=4)))

@@ -4,6 +4,7 @@ edge's scans only counted, a full or draining edge refusing attaches, shedding a
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Iterator
@@ -18,7 +19,7 @@ from zoffload.edge.fleet import Fleet
 from zoffload.edge.mapping import MappingService
 from zoffload.edge.recipe import BoundedMapper, MapperRecipe
 from zoffload.edge.server import edge_zenoh
-from zoffload.mapping.mapper import Registration
+from zoffload.mapping.mapper import Registration, RobotMapper
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.runtime.session import open_session
@@ -262,3 +263,40 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -
 
         wait_for(shed_gone, 5, "the shed robot's session gone")
         wait_for(lambda: balanced(service), 5, "every sample counted")
+
+
+def test_a_scan_with_the_robots_prior_after_an_outage_is_predicted_from_it(free_port: int) -> None:
+    """Two robots drive the simulator's sharp turn (scans 786-804) and their scans in it are lost
+    on the way. The one whose scan after the outage carries its own odometry's estimate
+    (``Scan.prior``, as a bridging robot sends it) is registered where it is; the other is
+    predicted by constant velocity and its edge loses it."""
+    start, last_seen, back = 776, 786, 804
+    raw = {i: SRC.read(i) for i in range(start, back + 3)}
+    local = RobotMapper(voxel_size=0.8, max_range=SRC.max_range)  # the robot's coarse odometry
+    for i in range(start, back + 1):
+        local.register(i, raw[i].points)
+    prior = np.stack([local.poses[-1], local.odometry.last_delta])
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=2))
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        errors = {}
+        for robot in ("r1", "r2"):
+            acks = Inbox(s, KEYS.scan_ack(robot), wire.ScanAck)
+            assert attach(s, robot, 1).accepted
+            pub = s.declare_publisher(KEYS.scan(robot))
+            seqs = [*range(start, last_seen + 1), back, back + 1, back + 2]
+            for n, seq in enumerate(seqs, 1):
+                pts = voxel_downsample(raw[seq].points, 0.05).astype(np.float32)
+                msg = wire.decode(scan(robot, seq, epoch=1, edge="e1", pts=pts), expect=wire.Scan)
+                if robot == "r1" and seq == back:
+                    msg = dataclasses.replace(msg, prior_seq=back, prior=prior)
+                pub.put(wire.encode(msg))
+                acks.wait(n)
+            assert all(a.status == "ok" for a in acks.items)
+            truth = [np.linalg.inv(raw[start].gt_pose) @ raw[a.seq].gt_pose for a in acks.items[-3:]]
+            errors[robot] = [float(np.linalg.norm(a.pose[:3, 3] - t[:3, 3]))
+                             for a, t in zip(acks.items[-3:], truth, strict=True)]
+        assert max(errors["r1"]) < 0.25 and min(errors["r2"]) > 0.5, errors
+        assert service.robots["r1"].counters["predicted_from_prior"] == 1
+        assert service.robots["r2"].counters["predicted_from_prior"] == 0
+        assert service.status()["predicted_from_prior"] == 1 and balanced(service)

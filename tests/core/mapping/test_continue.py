@@ -130,3 +130,39 @@ def test_the_motion_per_scan_is_averaged_over_the_newest_poses() -> None:
     d = motion_per_scan(seqs[:1], poses[:1], anchor=(8, at(-2.0)))  # from the pose before the hand-over
     assert d is not None and d[0, 3] == pytest.approx(1.0)
     assert motion_per_scan(np.array([100]), poses[:1], anchor=(8, at(-2.0)), max_gap=50) is None
+
+
+def test_a_scan_after_an_outage_in_a_turn_is_predicted_from_the_robots_own_estimate() -> None:
+    """The simulator's robot turns ~120 degrees over scans 786-804. An edge that missed those scans
+    stretches its constant-velocity model over the gap and converges metres off; predicted from
+    the robot's own (coarse) odometry, which registered every scan, it stays on the trajectory.
+    A following scan, or an estimate no newer than the mapper's last scan, changes nothing."""
+    start, last_seen, back = 776, 786, 804
+    raw = {i: SRC.read(i) for i in range(start, back + 3)}
+
+    def error(pose: np.ndarray, i: int) -> float:  # both frames start at scan ``start``
+        truth = np.linalg.inv(raw[start].gt_pose) @ raw[i].gt_pose
+        return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3]))
+
+    local = RobotMapper(voxel_size=0.8, max_range=SRC.max_range)  # the robot's coarse odometry
+    for i in range(start, back + 1):
+        local.register(i, raw[i].points)
+    edges = []
+    for use_prior in (False, True):
+        m = RobotMapper(voxel_size=0.4, max_range=SRC.max_range)
+        for i in range(start, last_seen + 1):
+            m.register(i, voxel_downsample(raw[i].points, 0.1))
+        pose_before = m.odometry.last_pose.copy()
+        assert not m.predict_from(back, last_seen, local.poses[last_seen - start], np.eye(4))  # not newer
+        assert not m.predict_from(back, back - m.max_gap, local.poses[-1], np.eye(4))  # too old
+        np.testing.assert_array_equal(m.odometry.last_pose, pose_before)
+        if use_prior:
+            assert m.predict_from(back, back, local.poses[-1], local.odometry.last_delta)
+        errors = [error(m.register(i, voxel_downsample(raw[i].points, 0.1)).pose, i)
+                  for i in range(back, back + 3)]
+        assert not m.predict_from(back + 3, back + 2, local.poses[-1], np.eye(4))  # no gap: ignored
+        edges.append(errors)
+    stretched, predicted = edges
+    assert min(stretched) > 0.5, stretched  # the constant-velocity guess lost the robot
+    assert max(predicted) < 0.25, predicted
+    assert m.seqs[-3:] == [back, back + 1, back + 2]  # the trajectory holds the registered scans

@@ -255,3 +255,40 @@ def test_attach_and_map_poses_are_rigid_motions_too() -> None:
     with pytest.raises(wire.WireError, match="not a rigid motion"):
         wire.decode(tamper("map", seqs={"nd": "<i8", "shape": [3], "data": np.arange(3).tobytes()},
                            poses=_mat(scaled)))
+
+
+def test_a_scan_carries_the_robots_prior_as_version_5_and_only_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Version 5: a scan with the robot's own pose and motion (sent only to an edge that said it
+    reads 5); a scan without one still goes as version 2, and a prior that is partial, from a
+    later scan or not rigid is refused."""
+    plain = wire.decode(valid_messages()["scan_f32"], expect=wire.Scan)
+    obj = msgpack.unpackb(wire.encode(plain), raw=False)
+    assert obj["v"] == 2 and "prior" not in obj and "prior_seq" not in obj and plain.prior is None
+    turn = np.eye(4)
+    turn[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    turn[:3, 3] = [1.0, 2.0, 0.0]
+    prior = np.stack([turn, np.eye(4)])
+    with_prior = dataclasses.replace(plain, prior_seq=2, prior=prior)
+    obj = msgpack.unpackb(wire.encode(with_prior), raw=False)
+    assert obj["v"] == 5 and obj["prior_seq"] == 2
+    back = wire.decode(wire.encode(with_prior), expect=wire.Scan)
+    assert back.prior_seq == 2 and back.prior is not None and np.array_equal(back.prior, prior)
+    with pytest.raises(wire.WireError, match="both"):
+        dataclasses.replace(plain, prior_seq=2)
+    for bad, match in (({"prior_seq": 4}, "later scan"), ({"prior": None}, "both"),
+                       ({"prior_seq": -2}, "prior_seq")):
+        obj = {**msgpack.unpackb(wire.encode(with_prior), raw=False), **bad}
+        if obj["prior"] is None:
+            del obj["prior"]
+        with pytest.raises(wire.WireError, match=match):
+            wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Scan)
+    skewed = prior.copy()
+    skewed[0, 0, 0] = 1.5
+    obj = msgpack.unpackb(wire.encode(with_prior), raw=False)
+    obj["prior"]["data"] = skewed.tobytes()
+    with pytest.raises(wire.WireError, match="rigid"):
+        wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Scan)
+    monkeypatch.setattr(wire, "READS", (1, 2, 3, 4))  # a version-4 build
+    assert wire.decode(wire.encode(plain), expect=wire.Scan).seq == 3
+    with pytest.raises(wire.WireError, match="codec version 5"):
+        wire.decode(wire.encode(with_prior), expect=wire.Scan)

@@ -182,3 +182,19 @@ def test_a_lone_silent_edge_is_re_attached_after_stay_silent_times_failover_afte
     assert f.silent(1.6 + STAY_SILENT * 0.5 + 0.05) and f.moves["silence"] == 1
     ask = f.next_attach(5.3, 9000)  # the same edge, asked again after its second
     assert ask is not None and ask[0] == edge and ask[1] > epoch
+
+
+def test_the_robot_knows_which_codec_version_each_live_edge_reads() -> None:
+    """From the edges' status (``wire.reads``): a scan's prior (version 5) goes only to an edge
+    that said it reads 5; an edge that said nothing, or nonsense, reads 3 as far as the robot knows."""
+    f = FleetState("r1", failover_after=0.5)
+    for e in ("e1", "e2", "e3"):
+        f.edge_present(e)
+    assert f.reads("e1") == 3 and f.reads("nobody") == 3
+    f.edge_status("e1", {"capacity": 4, "robots": 1, "wire.reads": 5.0}, 1.0)
+    f.edge_status("e2", {"capacity": 4, "robots": 1}, 1.0)
+    f.edge_status("e3", {"capacity": 4, "robots": 1, "wire.reads": float("nan")}, 1.0)
+    f.edge_status("gone", {"wire.reads": 5.0}, 1.0)  # no token: not recorded
+    assert [f.reads(e) for e in ("e1", "e2", "e3", "gone")] == [5, 3, 3, 3]
+    f.edge_status("e3", {"wire.reads": 1e9}, 2.0)
+    assert f.reads("e3") == 3

@@ -113,13 +113,29 @@ def test_overdue_acks_bridge_with_local_poses_and_an_ack_ends_it(edge_run: tuple
     assert all(ledger.records[s]["pose_source"] == "local" for s in range(30, 35))
     assert all(ledger.records[s]["pose_lag_ms"] >= 0 for s in range(30, 35))
     assert np.linalg.norm(bridged[0][:3, 3] - mapper.poses[34][:3, 3]) < 0.5
+    # What the scans carry to the edge (``Scan.prior``): this pose and the local motion per scan
+    got = keeper.prior_for(34)
+    assert got is not None and got[0] == 34 and keeper.prior_for(34 + 50) is None  # too old then
+    prior = got[1]
+    assert prior.shape == (2, 4, 4) and np.array_equal(prior[0], bridged[0])
+    step = np.linalg.inv(mapper.poses[33]) @ mapper.poses[34]
+    assert np.linalg.norm(prior[1][:3, 3] - step[:3, 3]) < 0.1 and wire.rigid_error(prior) < 1e-6
     assert keeper.pose is not None and keeper.pose[1] == 1.0
     assert scan(35) is not None  # still overdue: still bridging
-    # The edge answers again (under the current assignment): the bridge ends with the next scan
+    # The edge answers again, but only a scan sent before the bridge (delivered late): the edge
+    # has not seen the bridge's scans yet, so the bridge and its priors go on
     fleet.on_ack(ask[0], ask[1], "ok", time.monotonic(), in_flight=0)
-    assert scan(36) is None and not odo.active
+    with lock:
+        keeper.edge_pose(31, mapper.poses[31])
+    assert scan(36) is not None and odo.active and keeper.prior_for(36)[0] == 36
+    # It acks a scan of the bridge (here without a pose, as an edge that does not map answers):
+    # the bridge ends with the next scan, which carries no prior
+    with lock:
+        keeper.edge_pose(34, np.full((4, 4), np.nan))
+    assert keeper.prior_for(37) is None
+    assert scan(37) is None and not odo.active
     m = keeper.metrics()
-    assert m["bridged_scans"] == 2 and m["bridges"] == 1 and m["caught_up"] == 4
+    assert m["bridged_scans"] == 3 and m["bridges"] == 1 and m["caught_up"] == 4
     # Without an explicit setting the threshold is two periods, at most half the failover time
     auto = PoseKeeper(odo, fleet, ScanLedger(), lock, period=0.1, failover_after=1.0)
     assert auto.threshold() == pytest.approx(0.2)
