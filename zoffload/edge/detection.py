@@ -422,9 +422,6 @@ class DetectorService:
         net_h, net_w = self.detector.input_hw
         values.update({"detector.input_w": float(net_w), "detector.input_h": float(net_h),
                        "detector.stretch": float(self.detector.stretch)})
-        # The newest codec version this edge reads: a robot that reads it too asks for answers
-        # stamped with the frame's arrival (robot/frames.py times the link by them)
-        values["wire.reads"] = float(max(wire.READS))
         if self.infer_times:
             values["detector.infer_ms"] = float(np.mean(self.infer_times) * 1e3)
         return values

@@ -221,7 +221,7 @@ class EdgeServer:
         values["heap_trims"] = float(self.trimmer.trims)
         # The newest codec version this edge reads (a robot sends newer fields only to an edge
         # that says it reads them: a scan's prior, a frame's arrival stamp)
-        values["wire.reads"] = float(max(wire.READS))
+        values[wire.READS_KEY] = float(max(wire.READS))
         return wire.Status(source="edge", id=self.settings.edge_id, stamp=time.time(), values=values)
 
     def main_loop(self) -> None:

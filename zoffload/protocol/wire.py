@@ -44,6 +44,7 @@ import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
 READS = (1, 2, 3, 4, 5)
+READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
 RIGID_TOL = 1e-6  # a pose's rotation may be this far from orthonormal (float noise; consumers re-project)
@@ -437,6 +438,15 @@ MESSAGES: dict[str, type[Message]] = {
                         AttachReply, Preview)
 }
 M = TypeVar("M", bound=Message)
+
+
+def reads_in(values: dict[str, float]) -> int:
+    """The newest codec version a peer's status says it reads (``READS_KEY``): a whole number
+    in 1..1000, else 3 (not said, as by a version-3 build, or not believed)."""
+    v = values.get(READS_KEY)
+    if v is None or not math.isfinite(v) or v != int(v) or not 1 <= v <= 1_000:
+        return 3
+    return int(v)
 
 
 def check_id(value: str, what: str = "id") -> str:

@@ -30,7 +30,6 @@ from zoffload.robot.assign import pair_uniform
 
 FREE, DRAINING = "detector.free", "draining"
 INPUT_W, INPUT_H, STRETCH = "detector.input_w", "detector.input_h", "detector.stretch"
-READS = "wire.reads"  # the newest codec version the edge reads (absent: 3 at most)
 INPUT_SIDES = (32, 8192)  # a network input side outside these is not believed (the frame stays whole)
 
 
@@ -82,7 +81,7 @@ class EdgeChoice:
         if w is not None and h is not None:
             load.input_hw, load.stretch = (h, w), values.get(STRETCH, 0.0) == 1.0
         # each status is the whole picture: an edge restarted as an older build stops saying it
-        load.reads = _whole(values.get(READS), 1, 1_000) or 3
+        load.reads = wire.reads_in(values)
 
     def reads(self, edge: str) -> int:
         """The codec version to tell ``edge`` this robot reads: 4 when the edge reads 4 too (it then

@@ -101,10 +101,8 @@ class FleetState:
         with self._lock:
             a = self.assignment
             was = a.state == ATTACHED
-            reads = values.get("wire.reads", 3.0)
             if not a.edge_status(edge, values.get("capacity", 0.0), values.get("robots", 0.0),
-                                 values.get("draining", 0.0) > 0.5,
-                                 int(reads) if math.isfinite(reads) and 1 <= reads <= 1_000 else 3):
+                                 values.get("draining", 0.0) > 0.5, wire.reads_in(values)):
                 return False
             if a.state == ATTACHED:  # our edge drains: wait for its final checkpoint
                 if self._drain_seen is None:

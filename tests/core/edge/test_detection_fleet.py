@@ -208,9 +208,9 @@ def test_first_in_first_out_takes_the_oldest_frames_across_robots() -> None:
 def test_the_answer_carries_the_arrival_only_for_a_robot_that_reads_version_4() -> None:
     """A robot that said it reads codec version 4 gets each answer (served or dropped) stamped with
     its frame's arrival on the edge's clock; an older robot's answers go without the field, as
-    version 2, which it reads. The edge's status says it reads 4."""
+    version 2, which it reads. (The edge's status says it reads 4 or more: edge/server.py, tested
+    in tests/daemon/edge/test_server.py.)"""
     svc, session = service(queue=3)
-    assert svc.status()["wire.reads"] == max(wire.READS) >= 4
     before = time.monotonic()
     put(svc, wire.encode(replace(frame("r1", 1), reads=4)))
     put(svc, wire.encode(replace(frame("r1", 2), reads=4)))

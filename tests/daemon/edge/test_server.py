@@ -182,6 +182,8 @@ def test_shutdown_stops_services_in_reverse_and_closes_the_session_when_one_fail
     log: list[str] = []
     server.services += [Probe("a", log, fail=True), Probe("b", log)]
     assert {"a.up", "b.up", "robots"} <= set(server.status().values)
+    # Every edge says the newest codec version it reads (the robot sends newer fields only then)
+    assert server.status().values[wire.READS_KEY] == max(wire.READS) >= 4
     with pytest.raises(RuntimeError, match="a stuck"):
         server.shutdown()
     assert log == ["stop b", "stop a"] and server.services == [] and server.session is None
