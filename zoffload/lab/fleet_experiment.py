@@ -56,6 +56,7 @@ from zoffload.robot.scanlog import read_scan_rows
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint
 
 SESSION = ["--no-multicast-scouting", "--no-shm"]
+REPLAY_FOLDER = "pingpong"  # a folder of scans plays forth and back (the reference follows the same order)
 KEYS = Keys()
 
 
@@ -195,7 +196,7 @@ class Fleet:
         e = self.exp
         args = ["robot", *SESSION, "-m", "client", "-e", endpoint, *self.lease, *extra, "--robot-id", robot,
                 "--scans", e.scans, "--max-scans", str(e.max_scans), "--sim-seed", str(seed + index),
-                "--replay", "once" if e.scans == "sim" else "pingpong", "--wait-edge", "30",
+                "--replay", "once" if e.scans == "sim" else REPLAY_FOLDER, "--wait-edge", "30",
                 "--out", str(self.out / "robots" / robot)]
         if e.rate_hz:
             args += ["--rate", str(e.rate_hz)]
@@ -233,7 +234,7 @@ class Fleet:
 
 
 def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: dict[str, str],
-              quotas: dict[str, float], seed: int, refs: dict[tuple[int, ...], Any]) -> dict[str, Any]:
+              quotas: dict[str, float], seed: int, refs: dict[int, Any]) -> dict[str, Any]:
     from zoffload.lab.runner import loopback_zenoh
 
     out.mkdir(parents=True, exist_ok=True)
@@ -294,7 +295,7 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
 
 
 def _robot_result(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], rate: float,
-                  refs: dict[tuple[int, ...], Any]) -> dict[str, Any]:
+                  refs: dict[int, Any]) -> dict[str, Any]:
     mp = folder / "robot_metrics.json"
     metrics = json.loads(mp.read_text()) if mp.exists() else {}
     fig = fr.robot_figures(metrics, rows, 1 / rate, _ate(exp, folder, rows, refs))
@@ -302,7 +303,7 @@ def _robot_result(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]]
     return fig
 
 
-def _ate(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], refs: dict[tuple[int, ...], Any]
+def _ate(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], refs: dict[int, Any]
          ) -> dict[str, Any] | None:
     """Trajectory error of the robot's poses (edge and local) against ground truth (simulator) or
     KISS-ICP on every raw scan (a folder)."""
@@ -322,14 +323,13 @@ def _ate(exp: FleetExperiment, folder: Path, rows: list[dict[str, Any]], refs: d
     if exp.scans == "sim":
         ref_seqs, ref_poses = poses["gt_seqs"], poses["gt_poses"]
     else:
-        indices = tuple(int(r["index"]) for r in sorted(rows, key=lambda r: int(r["seq"])))
-        if indices not in refs:
-            from zoffload.lab.scan_experiment import _reference
+        newest = max((int(r["seq"]) for r in rows), default=-1)
+        if newest not in refs:
+            from zoffload.lab.scan_experiment import reference_trajectory
             from zoffload.sources import open_scan_source
 
-            s, p, _ = _reference(open_scan_source(exp.scans), list(indices), False, {})
-            refs[indices] = (s, p)
-        ref_seqs, ref_poses = refs[indices]
+            refs[newest] = reference_trajectory(open_scan_source(exp.scans), REPLAY_FOLDER, newest)
+        ref_seqs, ref_poses = refs[newest]
     err = trajectory_error(seqs, est, ref_seqs, ref_poses)
     return err.as_dict() if err else None
 
@@ -341,7 +341,7 @@ def _jsonable(exp: FleetExperiment) -> dict[str, Any]:
 
 
 def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces: dict[str, str],
-            quotas: dict[str, float], refs: dict[tuple[int, ...], Any]) -> list[dict[str, Any]]:
+            quotas: dict[str, float], refs: dict[int, Any]) -> list[dict[str, Any]]:
     runs = []
     for i in range(1, exp.repeat + 1):
         run = folder / f"run{i}"
@@ -362,7 +362,7 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     quotas = parse_edge_cpu(exp.edge_cpu, edge_ids(exp.edges))
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
-    refs: dict[tuple[int, ...], Any] = {}
+    refs: dict[int, Any] = {}
     with sigterm_interrupts():  # a SIGTERM to the harness stops its router, edges and robots too
         runs = _series(exp, out, events, traces, quotas, refs)
         base = (_series(replace(exp, events=""), out / "baseline", [], traces, quotas, refs) if exp.baseline

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import json
 from dataclasses import asdict, dataclass, replace
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,7 @@ from zoffload.robot.scanlog import RECORD_FIELDS, read_scan_rows
 from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.sources import open_scan_source
-from zoffload.sources.base import Replay, ScanSource
+from zoffload.sources.base import Replay, ScanSource, replay_order
 
 
 @dataclass(frozen=True)
@@ -75,19 +76,28 @@ def policy_voxel(policy: str) -> float | None:
     raise ConfigError(f"unknown policy {policy!r} (local, raw, fixed:V, dqn, dqn:PATH, rate)")
 
 
-def _reference(source: ScanSource, indices: list[int], is_sim: bool, gt: dict[int, np.ndarray]
-               ) -> tuple[np.ndarray, np.ndarray, str]:
-    """Reference trajectory per seq: ground truth, or KISS-ICP locally on every raw scan."""
-    if is_sim:
-        seqs = np.array(sorted(gt), np.int64)
-        return seqs, np.array([gt[s] for s in seqs]).reshape(-1, 4, 4), "simulator ground truth"
+def reference_trajectory(source: ScanSource, replay: str, newest: int) -> tuple[np.ndarray, np.ndarray]:
+    """KISS-ICP run locally on every raw scan the sensor produced, seq 0 to ``newest``, each at its
+    place in the replay (``replay_order``): the scans the robot never read as well. A loop overrun
+    leaves a seq with no record, so numbering the records instead shifts the reference one scan
+    per overrun against the robot's poses (on the KITTI-360 replay, metres)."""
     from zoffload.mapping.cloud import drop_non_finite
     from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
 
     mapper = RobotMapper(voxel_size=mapper_voxel_size(source.max_range, 0.0), max_range=source.max_range)
-    for seq, index in enumerate(indices):
+    for seq, index in enumerate(islice(replay_order(len(source), replay), newest + 1)):
         mapper.register(seq, drop_non_finite(source.read(index).points)[0])
-    seqs, poses = mapper.trajectory()
+    return mapper.trajectory()
+
+
+def _reference(source: ScanSource, recs: list[dict[str, Any]], replay: str, is_sim: bool,
+               gt: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, str]:
+    """Reference trajectory per seq: ground truth, or KISS-ICP locally on every raw scan."""
+    if is_sim:
+        seqs = np.array(sorted(gt), np.int64)
+        return seqs, np.array([gt[s] for s in seqs]).reshape(-1, 4, 4), "simulator ground truth"
+    newest = max((int(r["seq"]) for r in recs), default=-1)
+    seqs, poses = reference_trajectory(source, replay, newest)
     return seqs, poses, "KISS-ICP run locally on every raw scan (no ground truth for real data)"
 
 
@@ -215,10 +225,7 @@ def _run_local(exp: ScanExperiment, source: ScanSource, rate: float, replay: Rep
     seqs, poses = run.mapper.trajectory()
     np.savez(out / "trajectory.npz", seqs=seqs, poses=poses)
     np.save(out / "map_sample.npy", _sample(run.mapper.map_cloud()))
-    indices = [int(r["index"]) for r in run.records]
-    ref_seqs, ref_poses, reference = _reference(source, indices, is_sim, run.gt)
-    if not is_sim:  # the local run registered raw scans: it is the reference, matched by seq
-        ref_seqs = np.array([r["seq"] for r in run.records])[: len(ref_seqs)]
+    ref_seqs, ref_poses, reference = _reference(source, run.records, replay, is_sim, run.gt)
     err = trajectory_error(seqs, poses, ref_seqs, ref_poses)
     scans = max(1, len(run.records))
     cpu = {"per_scan_ms": 1e3 * (run.cpu_s - run.sensor_cpu_s) / scans,  # KISS-ICP + the global map
@@ -263,7 +270,7 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
         np.savez(out / "trajectory.npz", seqs=reply.seqs, poses=reply.poses)
         np.save(out / "map_sample.npy", _sample(reply.points))
         map_points = len(reply.points)
-        ref_seqs, ref_poses, reference = _reference(source, [int(r["index"]) for r in recs], is_sim, gt)
+        ref_seqs, ref_poses, reference = _reference(source, recs, replay, is_sim, gt)
         err = trajectory_error(reply.seqs, reply.poses, ref_seqs, ref_poses)
     row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"), 1 / rate,
                      metrics.get("cpu"))
