@@ -333,6 +333,8 @@ class MappingService:
             self._ack(rs, item, status="error", detail=str(exc)[:200])
             return
         self._count(rs, "registered")
+        if reg.gap_motion:  # a scan after a gap: which guess it was registered from
+            self._count(rs, f"gap_{reg.gap_motion}")
         rs.last_stamp = scan.capture_stamp
         self._ack(rs, item, status="ok", queue_time=start - item.arrival, reg=reg)
         if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending:

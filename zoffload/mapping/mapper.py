@@ -2,6 +2,11 @@
 
 Scans lost on the way (a gap in the sequence numbers) stretch KISS-ICP's constant-velocity
 prediction over the gap; without it, one lost second of a moving robot derails the odometry.
+Over a gap the robot may also have stopped or reversed, and from a constant-velocity guess metres
+off KISS-ICP converges to a wrong place along a street, where the scan still half fits: a scan
+after a gap is registered from three guesses (the motion kept, stopped, reversed, see
+``GAP_MOTIONS``) and the one whose result overlaps the local map best is kept; the kept motion
+wins unless another overlaps by ``GAP_MARGIN`` more.
 
 A mapper can continue another's trajectory (``continue_from``): seeded from a checkpoint
 (mapping/checkpoint.py), its poses stay in the checkpoint's frame, and the poses the robot
@@ -25,6 +30,7 @@ import numpy as np
 
 from zoffload.mapping.checkpoint import config_matches, seed
 from zoffload.mapping.se3 import as_rigid, se3_power
+from zoffload.mapping.voxel import KEY_BITS, KEY_OFFSET, MAX_INDEX
 from zoffload.mapping.voxelset import VoxelSet
 
 if TYPE_CHECKING:
@@ -41,6 +47,35 @@ class Registration:
     map_points: int
     proc_time: float  # seconds of registration on the edge (ICP + global map)
     icp_time: float  # seconds of KISS-ICP alone
+    gap_motion: str = ""  # after a gap, the guess kept: "kept", "stopped" or "reversed" (GAP_MOTIONS)
+
+
+# The guesses a scan after a gap is registered from: the motion per period over the gap times
+# these factors (kept: the constant-velocity model; stopped; reversed)
+GAP_MOTIONS = (("kept", 1.0), ("stopped", 0.0), ("reversed", -1.0))
+# The share of the scan's points in the map another guess's result must add to win: the real
+# cases seen (a turn back, a stop) won by 0.39-0.52; under a loaded edge with 5-14 lost scans,
+# guesses that all missed differed by 0.05-0.16, where switching is a coin toss
+GAP_MARGIN = 0.2
+# ICP iterations for the other guesses (KISS-ICP's own limit is 500): from a guess that is wrong
+# ICP wanders for hundreds of iterations, and the winner is refined by the full registration
+GAP_PROBE_ITERATIONS = 30
+
+
+def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
+    """Packed keys of the ``cell``-sized cubes the points fall in (indices clipped to the packing)."""
+    idx = np.clip(np.floor(points / cell), -MAX_INDEX, MAX_INDEX).astype(np.int64) + KEY_OFFSET
+    return (idx[:, 0] << (2 * KEY_BITS)) | (idx[:, 1] << KEY_BITS) | idx[:, 2]
+
+
+def map_overlap(points: np.ndarray, pose: np.ndarray, map_keys: np.ndarray, cell: float) -> float:
+    """The share of ``points`` (sensor frame) that, placed at ``pose``, fall in a cell of the map
+    (``map_keys``: the sorted unique ``_cell_keys`` of its points)."""
+    if len(points) == 0 or len(map_keys) == 0:
+        return 0.0
+    keys = _cell_keys(points @ pose[:3, :3].T + pose[:3, 3], cell)
+    at = np.minimum(np.searchsorted(map_keys, keys), len(map_keys) - 1)
+    return float(np.mean(map_keys[at] == keys))
 
 
 def mapper_voxel_size(max_range: float, robot_voxel_max: float, configured: float | None = None) -> float:
@@ -112,6 +147,7 @@ class RobotMapper:
         deskew: bool = False,
         map_resolution: float = 0.1,
         max_gap: int = 50,
+        gap_motions: tuple[tuple[str, float], ...] = GAP_MOTIONS,
     ) -> None:
         KISSConfig, KissICP = load_kiss_icp()
         config = KISSConfig()
@@ -128,6 +164,13 @@ class RobotMapper:
         self.voxel_size = voxel_size
         self.max_gap = max_gap  # beyond this many lost scans, constant velocity means nothing
         self.deskew = deskew
+        self.gap_motions = gap_motions  # the guesses a scan after a gap is registered from
+        from kiss_icp.registration import Registration as IcpRegistration
+
+        self._probe = IcpRegistration(  # the other guesses' ICP, bounded
+            max_num_iterations=GAP_PROBE_ITERATIONS,
+            convergence_criterion=config.registration.convergence_criterion,
+            max_num_threads=config.registration.max_num_threads)
         self.seqs: list[int] = []  # the trajectory: registered scans and the robot's own poses
         self.poses: list[np.ndarray] = []
         self.last_seq: int | None = None  # the scan the odometry's last pose belongs to
@@ -147,14 +190,18 @@ class RobotMapper:
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        if stretch:
-            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
-        # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
-        frame_out, keypoints = self.odometry.register_frame(frame, stamps)
-        if len(stamps):
-            frame = np.asarray(frame_out)
-        if stretch:
-            self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
+        gap_motion = ""
+        if stretch and not self.odometry.local_map.empty():
+            keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap)
+        else:
+            if stretch:
+                self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
+            # Run KISS-ICP (it returns the scan deskewed, which is what the global map keeps)
+            frame_out, keypoints = self.odometry.register_frame(frame, stamps)
+            if len(stamps):
+                frame = np.asarray(frame_out)
+            if stretch:
+                self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
         # Grow the global map with the scan in world coordinates
@@ -170,7 +217,60 @@ class RobotMapper:
             map_points=len(self.global_map),
             proc_time=time.perf_counter() - t0,
             icp_time=icp_time,
+            gap_motion=gap_motion,
         )
+
+    def _register_after_gap(self, seq: int, frame: np.ndarray, gap: int) -> tuple[np.ndarray, str]:
+        """KISS-ICP's ``register_frame`` for a scan ``gap`` periods after the last one, from each
+        guess of ``gap_motions`` (``GAP_MOTIONS``) farther from the first than ICP reaches (3
+        sigma); keeps the result that overlaps the local map best (the constant-velocity one unless
+        another adds ``GAP_MARGIN``, so once a result overlaps by ``1 - GAP_MARGIN`` no other guess
+        is tried). ``frame`` is deskewed already.
+        Returns the points aligned and the name of the guess kept."""
+        odo = self.odometry
+        frame = odo.preprocessor.preprocess(frame, np.empty(0), odo.last_delta)  # the range limits
+        source, frame_down = odo.voxelize(frame)
+        sigma = odo.adaptive_threshold.get_threshold()
+        guesses = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
+                   for name, factor in self.gap_motions]
+        # Guesses closer to the first than KISS-ICP's correspondence distance (3 sigma) are within
+        # its reach from the first: ICP from them would end where it does (a slow robot, a short gap)
+        first = guesses[0][1][:3, 3]
+        guesses = guesses[:1] + [(n, g) for n, g in guesses[1:]
+                                 if np.linalg.norm(g[:3, 3] - first) > 3 * sigma]
+        cell = 0.5 * self.voxel_size
+        map_keys = np.unique(_cell_keys(odo.local_map.point_cloud(), cell)) if len(guesses) > 1 else None
+        best: tuple[float, str, np.ndarray, np.ndarray] | None = None
+        kept = 0.0
+        for i, (name, guess) in enumerate(guesses):
+            pose = (odo.registration if i == 0 else self._probe).align_points_to_map(
+                points=source, voxel_map=odo.local_map, initial_guess=guess,
+                max_correspondance_distance=3 * sigma, kernel=sigma)
+            if map_keys is None:  # the only guess
+                best = (1.0, name, guess, pose)
+                break
+            overlap = map_overlap(source, pose, map_keys, cell)
+            if best is None:
+                kept = overlap
+            if best is None or overlap > best[0] + GAP_MARGIN:
+                best = (overlap, name, guess, pose)
+            if best[0] >= 1.0 - GAP_MARGIN:
+                break  # no other guess can beat it by the margin
+        assert best is not None
+        _, name, guess, pose = best
+        if name != guesses[0][0]:  # converge fully from where the bounded probe got
+            pose = odo.registration.align_points_to_map(
+                points=source, voxel_map=odo.local_map, initial_guess=pose,
+                max_correspondance_distance=3 * sigma, kernel=sigma)
+        # KISS-ICP's update step, with the deviation from the guess kept
+        odo.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
+        odo.local_map.update(frame_down, pose)
+        odo.last_delta = as_rigid(se3_power(np.linalg.inv(odo.last_pose) @ pose, 1.0 / gap))
+        odo.last_pose = pose
+        if name != guesses[0][0]:
+            log.info("scan %d after a %d-scan gap registered from the guess %r: %.0f %% of its points in "
+                     "the local map, %.0f %% from the motion kept", seq, gap, name, 100 * best[0], 100 * kept)
+        return source, name
 
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
                       local_poses: np.ndarray) -> bool:
