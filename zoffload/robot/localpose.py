@@ -21,7 +21,8 @@ no bridging happened), the scans in flight to it are registered here at the firs
 new assignment, so they have poses too.
 
 Either way a period starts from the freshest checkpoint (the edge's or our own) and the newest
-acked poses, and first registers the held scans the edge never answered (the catch-up ring).
+poses the robot has after it (the edge's acked ones, or its own of an earlier period), and first
+registers the held scans the edge never answered (the catch-up ring).
 
 Threads: everything here runs on the scan pipeline's loop thread, except ``edge_pose`` (ack
 callback) and ``status``; the ledger is shared under the pipeline's lock.
@@ -29,6 +30,7 @@ callback) and ``status``; the ledger is shared under the pipeline's lock.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import threading
 import time
@@ -135,6 +137,7 @@ class PoseKeeper:
         if previous is not None and previous != target:
             with self.lock:  # another assignment: the attach handed the poses over
                 self._bridge_from, self._local = None, None
+            self._bridging = False  # so a bridge to the new edge is one of its own, ended by its acks
             if not odo.active and not self.alive(previous[0]):
                 # moved off a dead edge: what was in flight to it will not be answered
                 self._begin(reading.seq, f"edge {previous[0]} gone")
@@ -179,23 +182,41 @@ class PoseKeeper:
             self.pose = (pose, 1.0)
 
     def _begin(self, seq: int, why: str) -> None:
-        """Start a period from the freshest checkpoint and the newest acked poses, and register
-        first the held scans the edge never answered."""
+        """Start a period from the freshest checkpoint and the newest poses after it (the edge's
+        or the local odometry's of an earlier period), and register first the held scans the edge
+        never answered."""
         assert self.odometry is not None
         odo = self.odometry
         cp, mine = self.fleet.checkpoint, odo.snapshot().checkpoint
         if mine is not None and (cp is None or mine.seq > cp.seq):
             cp = mine
         with self.lock:
-            acked = list(self._edge_poses)
+            newest = self._newest_poses(cp.seq if cp is not None else -1)
             posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
-        odo.begin(cp, acked)
+        odo.begin(cp, newest)
         for s, pose, cpu in odo.catch_up(seq, posed):
             with self.lock:
                 if self.ledger.local_pose(s, pose):
                     self.ledger.records[s]["cpu_local_ms"] = cpu
         log.info("mapping locally from scan %d, %s (checkpoint %s, %d scans caught up)", seq, why,
                  f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
+
+    def _newest_poses(self, after: int, n: int = 2) -> list[tuple[int, np.ndarray]]:
+        """The newest ``n`` poses the robot has for scans after ``after``, ascending: the edge's
+        where it answered, else the local odometry's. A period that started from its checkpoint
+        alone ignored the local poses the robot had just found after it (a reattach hands them
+        to the edge, ``attach_payload``) and stretched the checkpoint's motion over the gap to
+        the first scan it registers: on KITTI-360, seven scans from the robot's own checkpoint,
+        4 m off along the road, and the scans it bridged carried that to the edge. Caller holds
+        the lock."""
+        out: list[tuple[int, np.ndarray]] = []
+        poses = self.ledger.poses
+        for seq in heapq.nlargest(4 * n, (s for s in poses if s > after)):
+            if np.isfinite(poses[seq]).all():  # an edge that does not map acks with NaN
+                out.append((seq, np.array(poses[seq])))
+                if len(out) == n:
+                    break
+        return out[::-1]
 
     def metrics(self) -> dict[str, Any]:
         odo = self.odometry

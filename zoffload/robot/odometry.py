@@ -86,7 +86,8 @@ class LocalOdometry:
 
     def begin(self, checkpoint: wire.Checkpoint | None, acked: list[tuple[int, np.ndarray]]) -> None:
         """Start a period from ``checkpoint`` (None: the origin, or where the last acked pose
-        says) and ``acked``: the newest edge poses (seq, pose), ascending, at most a few."""
+        says) and ``acked``: the newest poses the robot has (seq, pose; the edge's, or its own of an
+        earlier period), ascending, at most a few."""
         KISSConfig, KissICP = load_kiss_icp()
         config = KISSConfig()
         config.data.max_range = self.max_range
@@ -104,7 +105,7 @@ class LocalOdometry:
             s, p = newer[-1]
             seqs = np.array([q for q, _ in newer], np.int64)
             delta = motion_per_scan(seqs, np.array([x for _, x in newer]), max_gap=MAX_GAP,
-                                    span=1)  # the edge's poses: its last step
+                                    span=1)  # the newest poses' last step
             if delta is not None:
                 odo.last_delta = delta
             odo.last_pose = as_rigid(p)

@@ -74,26 +74,14 @@ def test_unanswered_scans_are_caught_up_and_the_snapshot_carries_the_rest(edge_r
 def test_overdue_acks_bridge_with_local_poses_and_an_ack_ends_it(edge_run: tuple) -> None:
     """Attached to an edge that stops answering: before the robot gives up on it, each scan is
     registered locally as well, the unanswered ones first; the next ack ends the bridge."""
-    import threading
     import time
 
-    from zoffload.robot.fleet import FleetState
     from zoffload.robot.ledger import ScanLedger
     from zoffload.robot.localpose import PoseKeeper
     from zoffload.robot.sensor import Reading
 
     src, mapper, cp = edge_run
-    fleet = FleetState("robot1", failover_after=1.0)
-    fleet.edge_present("edge1")
-    ask = fleet.next_attach(0.0, 1000)
-    assert ask is not None
-    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
-                                               detail="", robots=1, capacity=4), 0.0)
-    fleet.checkpoint = cp  # the edge's newest, after scan 29
-    ledger, lock = ScanLedger(), threading.Lock()
-    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
-    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3)
-    keeper.edge_pose(29, mapper.poses[29])
+    fleet, ask, ledger, lock, odo, keeper = _attached_keeper(edge_run)  # the edge's checkpoint after scan 29
 
     def scan(i: int) -> tuple[np.ndarray, float] | None:
         reading = Reading(i, src.read(i), time.time())
@@ -174,3 +162,85 @@ def test_scans_in_flight_to_a_dead_edge_get_local_poses_after_the_move(edge_run:
     ledger.handed_off(33, {"capture_stamp": time.time()})
     assert keeper.attached(Reading(34, src.read(34), time.time()), ("edge1", 3)) is None
     assert 33 not in ledger.poses and keeper.metrics()["caught_up"] == 2
+
+
+def test_a_period_starts_from_the_newest_poses_the_robot_has_its_own_included(edge_run: tuple) -> None:
+    """The robot mapped scans 30-37 itself (no edge), reattached and sent 38-40, and the edge's
+    acks are overdue: the bridge starts from its own pose of scan 37, not from the checkpoint of
+    scan 29 with a nine-scan gap to stretch a motion over (on KITTI-360 that put the bridge 4 m
+    off along the road, and its scans carried that to the edge)."""
+    import time
+
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet, ask, ledger, lock, odo, keeper = _attached_keeper(edge_run)  # the edge's checkpoint after scan 29
+    for s in range(30, 38):  # the robot's own poses of an earlier period (here exact)
+        ledger.local(s, {"capture_stamp": time.time()}, mapper.poses[s])
+    ledger.poses[36] = np.full((4, 4), np.nan)  # an ack without a pose is not a pose
+    begun: list[list[int]] = []
+    begin = odo.begin
+    odo.begin = lambda c, newest: (begun.append([s for s, _ in newest]), begin(c, newest))[1]  # type: ignore[method-assign]
+    for i in range(38, 41):
+        assert keeper.attached(Reading(i, src.read(i), time.time()), ask) is None
+        ledger.handed_off(i, {"capture_stamp": time.time()})
+    fleet.on_sent(time.monotonic() - 0.5)
+    out = keeper.attached(Reading(41, src.read(41), time.time()), ask)
+    assert out is not None and begun == [[35, 37]]
+    for s in (38, 39, 40, 41):
+        pose = ledger.poses[s] if s < 41 else out[0]
+        assert np.linalg.norm(pose[:3, 3] - mapper.poses[s][:3, 3]) < 0.3, s
+
+
+def test_a_move_in_the_middle_of_a_bridge_ends_it_and_the_new_edge_gets_its_own(edge_run: tuple) -> None:
+    """Bridging to edge1, the robot is moved to edge2 whose acks are overdue too: that is a new
+    bridge, which lasts until edge2 acks one of its scans; the old bridge's estimate does not ride
+    on edge2's scans after it (it did, for up to MAX_GAP scans, once edge2 answered anything)."""
+    import time
+
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet, ask, ledger, lock, odo, keeper = _attached_keeper(edge_run)  # the edge's checkpoint after scan 29
+
+    def scan(i: int, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
+        out = keeper.attached(Reading(i, src.read(i), time.time()), target)
+        ledger.handed_off(i, {"capture_stamp": time.time()})
+        return out
+
+    assert scan(30, ask) is None
+    fleet.on_sent(time.monotonic() - 0.5)
+    assert scan(31, ask) is not None and keeper.metrics()["bridges"] == 1
+    moved = ("edge2", ask[1] + 1)
+    assert scan(32, moved) is not None  # edge2 overdue as well: a bridge of its own
+    assert keeper.metrics()["bridges"] == 2 and keeper.prior_for(32)[0] == 32
+    # edge2 answers, but nothing of its bridge yet: the bridge and its estimate go on
+    fleet.on_ack(ask[0], ask[1], "ok", time.monotonic(), in_flight=0)
+    assert scan(33, moved) is not None and keeper.prior_for(33)[0] == 33
+    with lock:
+        keeper.edge_pose(32, mapper.poses[32])  # edge2 acks a scan of its bridge
+    assert keeper.prior_for(34) is None and scan(34, moved) is None and not odo.active
+
+
+def _attached_keeper(edge_run: tuple) -> tuple:
+    """A robot attached to edge1, whose newest checkpoint (after scan 29) and pose of scan 29 it has,
+    with its local odometry and pose keeper: (fleet, attach target, ledger, lock, odometry, keeper)."""
+    import threading
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    fleet.edge_present("edge1")
+    ask = fleet.next_attach(0.0, 1000)
+    assert ask is not None
+    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
+                                               detail="", robots=1, capacity=4), 0.0)
+    fleet.checkpoint = cp
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3)
+    keeper.edge_pose(29, mapper.poses[29])
+    return fleet, ask, ledger, lock, odo, keeper
