@@ -190,9 +190,10 @@ class RobotMapper:
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        gap_motion = ""
-        if stretch and not self.odometry.local_map.empty():
-            keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap)
+        guesses = self._gap_guesses(gap) if stretch and not self.odometry.local_map.empty() else []
+        gap_motion = guesses[0][0] if guesses else ""
+        if len(guesses) > 1:
+            keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses)
         else:
             if stretch:
                 self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
@@ -220,35 +221,37 @@ class RobotMapper:
             gap_motion=gap_motion,
         )
 
-    def _register_after_gap(self, seq: int, frame: np.ndarray, gap: int) -> tuple[np.ndarray, str]:
+    def _gap_guesses(self, gap: int) -> list[tuple[str, np.ndarray]]:
+        """The initial guesses for a scan ``gap`` periods after the last one (``gap_motions``):
+        the first, and each other farther from it than KISS-ICP's correspondence distance (3
+        sigma). A guess within that reach of the first is not tried: ICP from the first reaches
+        it (a slow robot, a short gap)."""
+        odo = self.odometry
+        sigma = odo.adaptive_threshold.get_threshold()
+        guesses = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
+                   for name, factor in self.gap_motions]
+        first = guesses[0][1][:3, 3]
+        return guesses[:1] + [(n, g) for n, g in guesses[1:] if np.linalg.norm(g[:3, 3] - first) > 3 * sigma]
+
+    def _register_after_gap(self, seq: int, frame: np.ndarray, gap: int,
+                            guesses: list[tuple[str, np.ndarray]]) -> tuple[np.ndarray, str]:
         """KISS-ICP's ``register_frame`` for a scan ``gap`` periods after the last one, from each
-        guess of ``gap_motions`` (``GAP_MOTIONS``) farther from the first than ICP reaches (3
-        sigma); keeps the result that overlaps the local map best (the constant-velocity one unless
-        another adds ``GAP_MARGIN``, so once a result overlaps by ``1 - GAP_MARGIN`` no other guess
-        is tried). ``frame`` is deskewed already.
+        of ``guesses`` (``_gap_guesses``); keeps the result that overlaps the local map best (the
+        first unless another adds ``GAP_MARGIN``, so once a result overlaps by ``1 - GAP_MARGIN``
+        no other guess is tried). ``frame`` is deskewed already.
         Returns the points aligned and the name of the guess kept."""
         odo = self.odometry
         frame = odo.preprocessor.preprocess(frame, np.empty(0), odo.last_delta)  # the range limits
         source, frame_down = odo.voxelize(frame)
         sigma = odo.adaptive_threshold.get_threshold()
-        guesses = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
-                   for name, factor in self.gap_motions]
-        # Guesses closer to the first than KISS-ICP's correspondence distance (3 sigma) are within
-        # its reach from the first: ICP from them would end where it does (a slow robot, a short gap)
-        first = guesses[0][1][:3, 3]
-        guesses = guesses[:1] + [(n, g) for n, g in guesses[1:]
-                                 if np.linalg.norm(g[:3, 3] - first) > 3 * sigma]
         cell = 0.5 * self.voxel_size
-        map_keys = np.unique(_cell_keys(odo.local_map.point_cloud(), cell)) if len(guesses) > 1 else None
+        map_keys = np.unique(_cell_keys(odo.local_map.point_cloud(), cell))
         best: tuple[float, str, np.ndarray, np.ndarray] | None = None
         kept = 0.0
         for i, (name, guess) in enumerate(guesses):
             pose = (odo.registration if i == 0 else self._probe).align_points_to_map(
                 points=source, voxel_map=odo.local_map, initial_guess=guess,
                 max_correspondance_distance=3 * sigma, kernel=sigma)
-            if map_keys is None:  # the only guess
-                best = (1.0, name, guess, pose)
-                break
             overlap = map_overlap(source, pose, map_keys, cell)
             if best is None:
                 kept = overlap

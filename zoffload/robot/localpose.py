@@ -34,7 +34,6 @@ import heapq
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from itertools import islice
 from typing import Any
@@ -67,7 +66,7 @@ class PoseKeeper:
         self.bridges = 0  # periods of bridging
         self._bridging = False
         self._target: tuple[str, int] | None = None  # the assignment of the last scan sent
-        self._edge_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=2)  # newest acked, ascending
+        self._edge_newest = -1  # the newest acked scan with a pose
         self.pose: tuple[np.ndarray, float] | None = None  # the newest pose, its source (0 edge, 1 local)
         # The bridge's first scan, until the edge acks it or a later one (the bridge and its priors
         # may end then)
@@ -82,9 +81,9 @@ class PoseKeeper:
             self._bridge_from, self._local = None, None  # the edge answered a scan of the bridge
         if not np.isfinite(pose).all():
             return
-        if not self._edge_poses or seq > self._edge_poses[-1][0]:
-            self._edge_poses.append((seq, np.array(pose)))
-            self.pose = (self._edge_poses[-1][1], 0.0)
+        if seq > self._edge_newest:
+            self._edge_newest = seq
+            self.pose = (np.array(pose), 0.0)
 
     # The loop thread
     def threshold(self) -> float:
