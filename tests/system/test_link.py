@@ -135,10 +135,13 @@ def round_trips(trace_text: str, tmp_path: Path, n: int = 30) -> list[float]:
 def test_added_delay_within_5_ms(tmp_path: Path) -> None:
     rtts = round_trips(HEAD + "0, 100, 100, 30, 0, 0\n", tmp_path)
     one_way_ms = sorted(r / 2 * 1e3 for r in rtts)
-    # Every trip but the slowest within 5 ms: one scheduling hiccup of the 2-core machine under
-    # the suite's other processes is not the emulator's (seen once in CI: one trip of 27 over)
+    # Never early (that would be the emulator's fault whatever the load), the median on the
+    # trace's delay, and nine in ten trips within 5 ms: a late trip can be a scheduling hiccup of
+    # the 2-core machine under the suite's other processes (seen in CI: one trip of 27 over, and
+    # once two trips over in one run)
+    assert all(d >= 29 for d in one_way_ms), one_way_ms
     assert abs(statistics.median(one_way_ms) - 30) <= 2, one_way_ms
-    assert all(abs(d - 30) <= 5 for d in one_way_ms[:-1]), one_way_ms
+    assert sum(abs(d - 30) <= 5 for d in one_way_ms) >= 0.9 * len(one_way_ms), one_way_ms
 
 
 def test_jitter_spreads_delay_but_keeps_order(tmp_path: Path) -> None:
