@@ -25,6 +25,14 @@ the periods it was meant to take) is one of three kinds (``late_cause``):
   the budget far below what the link carries (README "Ours");
 * the first scan after a stall (``stall``): held.
 
+**A standing queue** (``_queue``): late scans in a queue that has stood a while do not rise above
+the last ones, so the rule above reads them as jitter and holds the budget, and the window of
+unanswered scans (the robot's ``max_in_flight``) holds the surplus back before the policy sees it.
+So when the window held scans back while the edge kept answering and the newest network times
+stand a period above the path's floor (the quickest of the last 100: a long path fills the window
+too, at its floor), the budget is capped at what the link delivered in the last second (times
+``margin``; with the window full, that is its capacity), at most once a second.
+
 Growth stops at what the link has shown it carries (``validated``): 1.5 times the largest recent
 scan, or the bytes per period a scan moved at (its bytes over its network time), whichever is
 larger. Without that, scans that do not fill the budget (sent as they are) let it grow unchecked.
@@ -60,12 +68,15 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from zoffload.mapping.voxel import voxel_downsample
+
+QUEUE_EVERY = 10  # scans between two queue caps at most (a second at 10 Hz)
 
 
 @dataclass(frozen=True)
@@ -92,6 +103,7 @@ class LinkView:
     since_ack: float = 0.0  # seconds since the last ack arrived
     in_flight: int = 0  # scans sent and not answered yet
     raw_bytes_per_point: float = math.nan  # bytes per point uncompressed (q16d); NaN: always coded
+    window_drops: int = 0  # scans held back so far because the window of unanswered ones was full
 
 
 @dataclass(frozen=True)
@@ -175,7 +187,7 @@ class LinkAwareScale:
                  grow_slow: float = 0.05, quiet: int = 50, widen: float = 2.0, max_skip: int = 2,
                  stall_after: float = 0.5, jitter_aware: bool = True, compress_share: float = 0.5,
                  refresh: int = 20, raw_share: float = 0.9, jitter_pace: int = 1,
-                 jitter_late: float = 0.25, headroom: float = 1.5) -> None:
+                 jitter_late: float = 0.25, headroom: float = 1.5, queue_cap: bool = True) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.in_range = len(self.candidates)
         self.candidates += widened_grid(*voxel_range, widen)
@@ -186,6 +198,7 @@ class LinkAwareScale:
         self.compress_share, self.refresh, self.raw_share = compress_share, refresh, raw_share
         self.jitter_pace, self.jitter_late = jitter_pace, jitter_late
         self.headroom = headroom
+        self.queue_cap = queue_cap
         self.start = min(max(start, self.candidates[0]), self.candidates[self.in_range - 1])
         self.name = "rate"
         self.reset()
@@ -201,7 +214,11 @@ class LinkAwareScale:
         self._skip_left = 0
         self._stalled = False  # skipped for a stall since the last ack
         self.event = ""  # what the last new ack did to the budget
-        self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "passes": 0}
+        self._nets: deque[float] = deque(maxlen=100)  # network times of the last acks (the path's floor)
+        self._window_seen = 0  # window drops already looked at
+        self._capped_at = -QUEUE_EVERY  # scan count of the last queue cap
+        self._stall_scan = -QUEUE_EVERY  # scan count of the last stall
+        self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "queue": 0, "passes": 0}
         return self.start
 
     def choose(self, last_t: float, last_v: float) -> float:
@@ -216,7 +233,9 @@ class LinkAwareScale:
         if link.acks >= 0:
             if link.acks == self._acks_seen:
                 return self.budget  # nothing new from the edge
+            fresh = link.acks - self._acks_seen if self._acks_seen >= 0 else 1
             self._acks_seen = link.acks
+            self._nets.extend(a.net for a in link.recent[-fresh:] if math.isfinite(a.net))
         deadline = self.deadline if self.deadline is not None else 1.05 * link.period
         slot = max(1, link.last_slot)
         late = link.last_t > deadline * slot
@@ -235,7 +254,37 @@ class LinkAwareScale:
             growth = self.grow_fast if self.since_late >= self.quiet else self.grow_slow
             grown = self.budget * (1 + growth) ** slot
             self.budget = min(grown, max(self.budget, self.validated(link)))
+        drops, self._window_seen = link.window_drops - self._window_seen, link.window_drops
+        if drops > 0 and self.queue_cap:
+            self._queue(link)
         return self.budget
+
+    def _queue(self, link: LinkView) -> None:
+        """The window held scans back while the edge kept answering: scans were sent faster than
+        the link carried them. If the newest network times also stand a period above the path's
+        floor (the quickest of the last 100), a queue stands on the link, and the budget is capped
+        at what the link delivered in the last second (x ``margin``), which with the window full is
+        its capacity. Late scans in a standing queue do not rise above the last ones and read as
+        jitter (``late_cause``), and the scans the window holds back never reach the policy, so
+        without this the budget stayed at twice what a slow cellular uplink carried and the window
+        dropped a quarter of the scans (README "Unseen links"). A long path without a queue fills
+        the window too, but at the floor; right after a stall the last second's deliveries are not
+        a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
+        stream's, not the link's."""
+        if (link.since_ack >= self.stall_after or self._scans - self._stall_scan < QUEUE_EVERY
+                or self._scans - self._capped_at < QUEUE_EVERY or len(self._nets) < 10):
+            return
+        newest = [a.net for a in link.recent[-3:] if math.isfinite(a.net)]
+        floor = min(self._nets)
+        carried = link.acked_bytes_per_s * link.period * self.margin
+        if not newest or _median(newest) <= floor + link.period or not (0 < carried < self.budget):
+            return
+        self.budget = carried
+        self.since_late = 0
+        self._capped_at = self._scans
+        self.counts["queue"] += 1
+        self.event = (f"queue (window full, network time {1e3 * _median(newest):.0f} ms, floor "
+                      f"{1e3 * floor:.0f} ms): budget capped at the delivered {carried / 1e3:.0f} kB")
 
     def validated(self, link: LinkView) -> float:
         """How far the budget may grow on what the link has shown (inf: nothing shown yet). On time
@@ -285,6 +334,7 @@ class LinkAwareScale:
         event = f"{self.event}; " if self.event else ""
         if self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after:
             self._stalled = True
+            self._stall_scan = self._scans
             return Decision(self.last_voxel, skip=True, cause="stall",
                             reason=f"{event}stall: no ack for {link.since_ack:.2f} s")
         if self._skip_left > 0:

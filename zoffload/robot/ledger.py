@@ -46,6 +46,7 @@ class ScanLedger:
     first_acked_at: float | None = None  # robot clock of the first scan acked "ok"
     recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
     _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
+    window_drops: int = 0  # scans held back because the window of unanswered ones was full
     _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
 
     @property

@@ -264,6 +264,7 @@ class ScanStreamer:
         with self._lock:
             if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
                 self.ledger.drop_at_source(reading.seq, "window", record)
+                self.ledger.window_drops += 1
                 return bridged
         # Size: the policy's choice, the grid pass, the payload's layout
         sized = self.sizer.size(frame.points, getattr(frame, "times", None), self._link_view)
@@ -352,6 +353,7 @@ class ScanStreamer:
                 recent=tuple(led.recent),
                 since_ack=now - led.last_ack_at if math.isfinite(led.last_ack_at) else 0.0,
                 in_flight=led.in_flight,
+                window_drops=led.window_drops,
                 raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
     # Main loop

@@ -112,6 +112,48 @@ def test_a_late_scan_that_queued_cuts_the_budget_to_what_the_link_delivers() -> 
     assert v > 0.05  # a tight budget means coarse voxels
 
 
+def _acks_in(nets: list[float], acks: int, drops: int, delivered: float = 300_000.0,
+             since_ack: float = 0.05) -> LinkView:
+    """An on-time ack (T = one period) after ``nets``' scans, ``drops`` window drops so far."""
+    recent = tuple(AckInfo(50_000, n, 0.1) for n in nets[-24:])
+    return LinkView(0.1, delivered, 6.0, 0.1, acks=acks, recent=recent, since_ack=since_ack,
+                    window_drops=drops)
+
+
+def _run_in(p: LinkAwareScale, nets: list[float], drops: list[int], **kw: float) -> None:
+    for i in range(len(nets)):
+        p._scans += 1
+        p.update_budget(_acks_in(nets[: i + 1], i, drops[i], **kw))
+
+
+def test_a_standing_queue_caps_the_budget_at_what_the_link_delivers() -> None:
+    """The window holds scans back while the edge keeps answering, and the network times stand a
+    period above the path's floor: a queue stands, though no late scan rises above the last ones
+    (so ``late_cause`` reads jitter). The budget drops to what the link delivered in the last
+    second (x margin), once a second at most; growth resumes from there."""
+    p = LinkAwareScale((0.01, 0.07), margin=0.85)
+    p.budget = 70_000.0
+    nets, drops = [0.08] * 12 + [0.26, 0.27], [0] * 12 + [0, 1]
+    _run_in(p, nets, drops)
+    assert p.budget == pytest.approx(300_000.0 * 0.1 * 0.85) and p.counts["queue"] == 1
+    assert "queue" in p.event
+    capped = p.budget  # the next drop within a second does not cap again (the rate is our own now)
+    p._scans += 1
+    p.update_budget(_acks_in([*nets, 0.26], 14, 2, delivered=200_000.0))
+    assert p.budget == pytest.approx(capped * 1.05) and p.counts["queue"] == 1
+
+
+@pytest.mark.parametrize("case", ["long path", "stall", "off", "no drop"])
+def test_a_full_window_is_not_a_queue_on_a_long_path_nor_after_a_stall(case: str) -> None:
+    p = LinkAwareScale((0.01, 0.07), margin=0.85, queue_cap=case != "off")
+    p.budget = 70_000.0
+    floor = 0.35 if case == "long path" else 0.08  # three scans in flight with no queue at all
+    nets = [floor] * 12 + [0.36, 0.37, 0.36] if case == "long path" else [0.08] * 12 + [0.26, 0.27, 0.25]
+    drops = [0] * 14 + [0 if case == "no drop" else 2]
+    _run_in(p, nets, drops, since_ack=0.8 if case == "stall" else 0.05)
+    assert p.counts["queue"] == 0 and p.budget > 70_000.0
+
+
 def test_late_within_the_jitter_holds_the_budget() -> None:
     jittery = [AckInfo(50_000, 0.060 + 0.012 * ((i * 7) % 5 - 2), 0.1) for i in range(10)]
     late = (*jittery, AckInfo(50_000, 0.072, 0.118))  # within what the network times did lately
