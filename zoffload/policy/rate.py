@@ -77,6 +77,7 @@ import numpy as np
 from zoffload.mapping.voxel import voxel_downsample
 
 QUEUE_EVERY = 10  # scans between two queue caps at most (a second at 10 Hz)
+SILENT = 0.5  # seconds without an ack (scans in flight) that make a stall where ``stall_after`` is 0
 
 
 @dataclass(frozen=True)
@@ -271,7 +272,7 @@ class LinkAwareScale:
         the window too, but at the floor; right after a stall the last second's deliveries are not
         a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
         stream's, not the link's."""
-        if (link.since_ack >= self.stall_after or self._scans - self._stall_scan < QUEUE_EVERY
+        if (link.since_ack > (self.stall_after or SILENT) or self._scans - self._stall_scan < QUEUE_EVERY
                 or self._scans - self._capped_at < QUEUE_EVERY or len(self._nets) < 10):
             return
         newest = [a.net for a in link.recent[-3:] if math.isfinite(a.net)]
@@ -318,6 +319,8 @@ class LinkAwareScale:
         """The decision for a scan of ``n_points`` points; ``count(v)`` runs the grid pass at
         ``v`` on it and returns the voxels (the caller keeps the result for the chosen size)."""
         self._scans += 1
+        if link.in_flight > 0 and link.since_ack > (self.stall_after or SILENT):
+            self._stall_scan = self._scans  # (skipped for below unless ``stall_after`` is 0)
         if np.isnan(self._curve).any():  # one-off calibration: every size counted once
             counts = [count(v) for v in self.candidates]
             self.counts["passes"] += len(self.candidates)
@@ -334,7 +337,6 @@ class LinkAwareScale:
         event = f"{self.event}; " if self.event else ""
         if self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after:
             self._stalled = True
-            self._stall_scan = self._scans
             return Decision(self.last_voxel, skip=True, cause="stall",
                             reason=f"{event}stall: no ack for {link.since_ack:.2f} s")
         if self._skip_left > 0:

@@ -5,6 +5,7 @@ the scan rate drops, each choice with its reason."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -152,6 +153,27 @@ def test_a_full_window_is_not_a_queue_on_a_long_path_nor_after_a_stall(case: str
     drops = [0] * 14 + [0 if case == "no drop" else 2]
     _run_in(p, nets, drops, since_ack=0.8 if case == "stall" else 0.05)
     assert p.counts["queue"] == 0 and p.budget > 70_000.0
+
+
+def test_a_silence_is_not_a_queue_even_where_stalls_are_not_skipped() -> None:
+    """Scans held back through an outage, then acks of scans that waited it out: the last second's
+    deliveries are no rate, so no cap for a second after the silence, with stall skipping off
+    (``stall_after`` 0) as with it on; a standing queue after that is capped."""
+    pts = _scan()
+    p = LinkAwareScale((0.01, 0.07), margin=0.85, stall_after=0.0)
+    p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
+    p.budget = 70_000.0
+    nets = [0.08] * 12
+    for i in range(12):
+        p.decide(len(pts), _acks_in(nets[: i + 1], i, 0), counter(pts))
+    silent = replace(_acks_in(nets, 11, 3, since_ack=0.8), in_flight=3)
+    assert not p.decide(len(pts), silent, counter(pts)).skip  # stall skipping off
+    for i in range(12, 30):  # acks again, a standing queue and the window full
+        nets.append(0.3)
+        p.decide(len(pts), _acks_in(nets, i, 3 + i), counter(pts))
+        if i < 21:
+            assert p.counts["queue"] == 0, i
+    assert p.counts["queue"] >= 1
 
 
 def test_late_within_the_jitter_holds_the_budget() -> None:
