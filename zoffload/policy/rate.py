@@ -77,7 +77,7 @@ import numpy as np
 from zoffload.mapping.voxel import voxel_downsample
 
 QUEUE_EVERY = 10  # scans between two queue caps at most (a second at 10 Hz)
-SILENT = 0.5  # seconds without an ack (scans in flight) that make a stall where ``stall_after`` is 0
+SILENT = 0.5  # seconds without an ack that make a silence (``_queue``) where ``stall_after`` is 0
 
 
 @dataclass(frozen=True)
@@ -218,7 +218,7 @@ class LinkAwareScale:
         self._nets: deque[float] = deque(maxlen=100)  # network times of the last acks (the path's floor)
         self._window_seen = 0  # window drops already looked at
         self._capped_at = -QUEUE_EVERY  # scan count of the last queue cap
-        self._stall_scan = -QUEUE_EVERY  # scan count of the last stall
+        self._stall_scan = -QUEUE_EVERY  # scan count of the last silence (no ack for stall_after)
         self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "queue": 0, "passes": 0}
         return self.start
 
@@ -231,6 +231,8 @@ class LinkAwareScale:
     def update_budget(self, link: LinkView) -> float:
         """Move the budget with a new ack: grown while scans arrive on time; for a scan late for
         its slot, cut (``size``) or held (``jitter``, the first after a ``stall``): ``late_cause``."""
+        if link.since_ack > (self.stall_after or SILENT):  # a silence: the next second's rate is none
+            self._stall_scan = self._scans
         if link.acks >= 0:
             if link.acks == self._acks_seen:
                 return self.budget  # nothing new from the edge
@@ -269,11 +271,12 @@ class LinkAwareScale:
         jitter (``late_cause``), and the scans the window holds back never reach the policy, so
         without this the budget stayed at twice what a slow cellular uplink carried and the window
         dropped a quarter of the scans (README "Unseen links"). A long path without a queue fills
-        the window too, but at the floor; right after a stall the last second's deliveries are not
+        the window too, but at the floor; within a second of a silence (no ack for ``stall_after``,
+        or ``SILENT`` where that is 0; scans in flight or not) the last second's deliveries are not
         a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
         stream's, not the link's."""
-        if (link.since_ack > (self.stall_after or SILENT) or self._scans - self._stall_scan < QUEUE_EVERY
-                or self._scans - self._capped_at < QUEUE_EVERY or len(self._nets) < 10):
+        if (self._scans - self._stall_scan < QUEUE_EVERY or self._scans - self._capped_at < QUEUE_EVERY
+                or len(self._nets) < 10):
             return
         newest = [a.net for a in link.recent[-3:] if math.isfinite(a.net)]
         floor = min(self._nets)
@@ -319,8 +322,6 @@ class LinkAwareScale:
         """The decision for a scan of ``n_points`` points; ``count(v)`` runs the grid pass at
         ``v`` on it and returns the voxels (the caller keeps the result for the chosen size)."""
         self._scans += 1
-        if link.in_flight > 0 and link.since_ack > (self.stall_after or SILENT):
-            self._stall_scan = self._scans  # (skipped for below unless ``stall_after`` is 0)
         if np.isnan(self._curve).any():  # one-off calibration: every size counted once
             counts = [count(v) for v in self.candidates]
             self.counts["passes"] += len(self.candidates)
