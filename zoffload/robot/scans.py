@@ -347,7 +347,7 @@ class ScanStreamer:
                 acked_bytes_per_s=led.acked_bytes_per_s(now),
                 bytes_per_point=sum(b for b, _ in coded) / max(1, sum(n for _, n in coded)) if coded
                 else math.nan,
-                period=1.0 / self.opts.rate_hz,
+                period=self._sensor.period_now() if self._sensor is not None else 1.0 / self.opts.rate_hz,
                 acks=led.interarrivals_seen,
                 last_slot=led.last_slot,
                 recent=tuple(led.recent),
@@ -475,6 +475,9 @@ class ScanStreamer:
             }
         out["scans"] = totals.scans(sum(out["dropped_source"].get(r, 0) for r in DELIBERATE))
         out["records_retired"] = self.ledger.log.retired
+        # the period the policy judged lateness by: a live topic's measured one (its real rate)
+        out["sensor_period_s"] = {"nominal": 1.0 / self.opts.rate_hz,
+                                  "used": self._sensor.period_now() if self._sensor is not None else None}
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
         if self.fleet_state is not None:
             out["fleet"] = self._fleet_metrics(totals, balance)

@@ -1,13 +1,20 @@
 """A sensor thread that replays a source (LiDAR scans or camera frames) at its rate, like a real
 driver: it never waits for the consumer. Only the newest reading is kept; one overwritten before it
 was taken is counted. The thread's CPU time is kept (``cpu_s``): a replayed or simulated sensor
-runs in the robot's process, and its work is not the robot's offloading work."""
+runs in the robot's process, and its work is not the robot's offloading work.
+
+A live topic paces itself, and its real rate is not always the nominal one (a driver at 9.4 Hz,
+a 20 Hz sensor under the default 10 Hz): ``period_now`` is then the median gap between the last
+readings, the period the scan policies judge lateness by (at the nominal period, a topic a few
+per cent slower than it reads as a late link on every scan)."""
 
 from __future__ import annotations
 
 import logging
+import statistics
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -34,6 +41,11 @@ class Reading:
     capture_stamp: float  # robot wall clock when the scan was complete
 
 
+GAPS_KEPT = 50  # live topics: the gaps the measured period is the median of
+GAPS_NEEDED = 3  # ... and how many before it replaces the nominal period
+GAP_MOST = 1.0  # [s] a longer gap (a driver paused) is a pause, not the rate; 5 periods if longer
+
+
 class SensorThread:
     def __init__(self, source: FrameSource, rate_hz: float, mode: str = "once",
                  max_scans: int | None = None, name: str = "sensor") -> None:
@@ -48,6 +60,7 @@ class SensorThread:
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._slot: Reading | None = None
+        self._gaps: deque[float] = deque(maxlen=GAPS_KEPT)  # live topics: seconds between readings
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -64,6 +77,7 @@ class SensorThread:
         # A spinning sensor delivers a scan every period, whoever listens; a bag's frames come as
         # far apart as they were recorded (stretched to --rate); a live topic paces itself
         clock = ReplayClock(start, self.period, live=live, scale=self.period * self.source.rate_hz)
+        last: float | None = None
         try:
             for k, index in enumerate(replay_order(len(self.source), self.mode)):
                 if self._stop.is_set() or (self.max_scans is not None and k >= self.max_scans):
@@ -74,6 +88,12 @@ class SensorThread:
                 delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     break
+                if live:
+                    mono = time.monotonic()
+                    if last is not None and 0 < mono - last <= max(GAP_MOST, 5 * self.period):
+                        with self._cond:
+                            self._gaps.append(mono - last)
+                    last = mono
                 now, stamp = time.time(), getattr(frame, "stamp", None)
                 # A live topic's header stamp is when the sensor completed the scan (same clock)
                 capture = stamp if live and stamp is not None and abs(stamp - now) < 5.0 else now
@@ -92,6 +112,13 @@ class SensorThread:
             self.finished.set()
             with self._cond:
                 self._cond.notify_all()
+
+    def period_now(self) -> float:
+        """The sensor's period: a live topic's measured one (the median of the last gaps between
+        its readings) once it has a few, else the nominal ``1 / rate_hz``."""
+        with self._cond:
+            gaps = list(self._gaps)
+        return statistics.median(gaps) if len(gaps) >= GAPS_NEEDED else self.period
 
     def take(self, timeout: float) -> Reading | None:
         """The newest unread scan, waiting up to ``timeout``; None if none came."""

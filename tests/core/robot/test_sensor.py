@@ -1,0 +1,61 @@
+"""The sensor thread's period: a replay keeps the nominal one; a live topic's is measured from
+the gaps between its readings (its real rate), leaving out pauses."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from zoffload.robot import sensor as sensor_mod
+from zoffload.robot.sensor import SensorThread
+
+
+class Paced:
+    """A source whose ``read`` takes ``gap`` seconds (a live topic waiting for its next message
+    when ``live``); ``pause_at``: one read that takes ``pause`` instead."""
+
+    name = "paced"
+
+    def __init__(self, gap: float, live: bool, n: int = 12, pause_at: int = -1, pause: float = 0.0) -> None:
+        self.gap, self.live, self.n, self.pause_at, self.pause = gap, live, n, pause_at, pause
+        self.rate_hz = 10.0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def read(self, index: int) -> int:
+        time.sleep(self.pause if index == self.pause_at else self.gap)
+        return index
+
+
+def run(source: Paced, rate_hz: float = 10.0) -> SensorThread:
+    s = SensorThread(source, rate_hz)
+    s.start()
+    while not s.exhausted:
+        s.take(0.05)
+    s.stop()
+    return s
+
+
+def test_a_live_topic_s_period_is_measured() -> None:
+    s = run(Paced(0.03, live=True))
+    assert s.period == pytest.approx(0.1)
+    assert 0.025 <= s.period_now() <= 0.07  # the topic's ~0.03 s, not the nominal 0.1
+
+
+def test_a_replay_keeps_the_nominal_period() -> None:
+    s = run(Paced(0.0, live=False, n=8), rate_hz=50.0)
+    assert s.period_now() == pytest.approx(0.02)
+
+
+def test_too_few_gaps_keep_the_nominal_period() -> None:
+    s = run(Paced(0.01, live=True, n=sensor_mod.GAPS_NEEDED))  # n readings: n - 1 gaps
+    assert s.period_now() == pytest.approx(0.1)
+
+
+def test_a_pause_is_not_a_gap(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sensor_mod, "GAP_MOST", 0.1)
+    s = run(Paced(0.01, live=True, n=8, pause_at=4, pause=0.6), rate_hz=100.0)
+    assert len(s._gaps) == 6  # 7 gaps, the pause left out
+    assert s.period_now() < 0.05
