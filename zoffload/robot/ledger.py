@@ -47,6 +47,7 @@ class ScanLedger:
     recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
     _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
     window_drops: int = 0  # scans held back because the window of unanswered ones was full
+    edge_times: deque[float] = field(default_factory=lambda: deque(maxlen=20))  # queue + registration [s]
     _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
 
     @property
@@ -137,6 +138,8 @@ class ScanLedger:
                 _pose_known(rec)
                 nbytes = int(rec.get("bytes") or 0)
                 self.recent.append(AckInfo(nbytes, rtt - edge_time, ack.interarrival, slot))
+                if math.isfinite(ack.queue_time) and math.isfinite(ack.proc_time):
+                    self.edge_times.append(edge_time)
                 self._acked_bytes.append((recv_stamp, nbytes))
                 if self.first_acked_at is None:
                     self.first_acked_at = recv_stamp
@@ -184,6 +187,18 @@ class ScanLedger:
     @property
     def in_flight(self) -> int:
         return len(self.pending)
+
+    def window(self, base: int, period: float) -> int:
+        """Unanswered scans allowed before the next is held back: ``base`` (0: no limit) plus the
+        scans the edge itself holds, queued or being registered: the median of its time per scan
+        over the last 20 acks, in periods, rounded; at most ``base`` more. Those scans are off the
+        link: counted against the link's window, an edge that registers in a period (KITTI-360's
+        HDL-64 on a busy edge) leaves the link a window of 2, and a path of 2-3 periods (cellular)
+        drops scans without any queue on it."""
+        if not base or not self.edge_times:
+            return base
+        extra = int(sorted(self.edge_times)[len(self.edge_times) // 2] / period + 0.5)
+        return base + min(base, extra)
 
     def balance(self) -> dict[str, int]:
         c = self.counters

@@ -76,6 +76,7 @@ class StreamOptions:
     zstd_level: int = 1  # q16d's compression level
     ack_timeout: float = 1.0
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
+    window_edge_time: bool = True  # ... plus the scans the edge holds (ScanLedger.window)
     out_dir: Path | None = None  # records retire onto disk here as the run goes (robot/scanlog.py)
     keep_records: int = 4096  # records held in memory
     # The fleet (RobotFleetSettings)
@@ -262,7 +263,12 @@ class ScanStreamer:
         local_s = time.thread_time() - l0  # local odometry's (and its catch-up's), booked apart
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
-            if self.opts.max_in_flight and self.ledger.in_flight >= self.opts.max_in_flight:
+            window = (self.ledger.window(self.opts.max_in_flight, self._period())
+                      if self.opts.window_edge_time else self.opts.max_in_flight)
+            if window and self.ledger.in_flight >= window:
+                base = self.opts.max_in_flight
+                record["reason"] = (f"window full: {self.ledger.in_flight} unanswered "
+                                    f"({base} + {window - base} at the edge)")
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 self.ledger.window_drops += 1
                 return bridged
@@ -336,6 +342,10 @@ class ScanStreamer:
                     rec["cpu_send_ms"] = cpu_send * 1e3
                     rec["cpu_ms"] = (item.cpu_loop + cpu_send) * 1e3
 
+    def _period(self) -> float:
+        """The sensor's period: a live topic's measured one (``SensorThread.period_now``)."""
+        return self._sensor.period_now() if self._sensor is not None else 1.0 / self.opts.rate_hz
+
     def _link_view(self) -> LinkView:
         """The link as the acks show it (the ledger keeps the figures up to date on every ack)."""
         now = time.monotonic()
@@ -347,7 +357,7 @@ class ScanStreamer:
                 acked_bytes_per_s=led.acked_bytes_per_s(now),
                 bytes_per_point=sum(b for b, _ in coded) / max(1, sum(n for _, n in coded)) if coded
                 else math.nan,
-                period=self._sensor.period_now() if self._sensor is not None else 1.0 / self.opts.rate_hz,
+                period=self._period(),
                 acks=led.interarrivals_seen,
                 last_slot=led.last_slot,
                 recent=tuple(led.recent),
@@ -477,7 +487,7 @@ class ScanStreamer:
         out["records_retired"] = self.ledger.log.retired
         # the period the policy judged lateness by: a live topic's measured one (its real rate)
         out["sensor_period_s"] = {"nominal": 1.0 / self.opts.rate_hz,
-                                  "used": self._sensor.period_now() if self._sensor is not None else None}
+                                  "used": self._period()}
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
         if self.fleet_state is not None:
             out["fleet"] = self._fleet_metrics(totals, balance)
@@ -553,6 +563,7 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
         quant_fraction=settings.quant_fraction, zstd_level=settings.zstd_level,
         ack_timeout=settings.ack_timeout, max_in_flight=settings.max_in_flight,
+        window_edge_time=settings.window_edge_time,
         out_dir=Path(settings.out_dir) if settings.out_dir else None,
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
         local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,

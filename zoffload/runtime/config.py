@@ -488,6 +488,12 @@ class RobotSettings(_Strict):
     max_in_flight: int = Field(
         default=3, ge=0, description="unanswered scans before the next is held back; 0 = no limit"
     )
+    # A scan the edge is queueing or registering is unanswered but off the link: the window
+    # widens by the edge's time per scan (the median of the last 20 acks) in periods, at most
+    # doubling
+    window_edge_time: bool = Field(
+        default=True, description="widen the window of unanswered scans by the edge's time per scan"
+    )
     status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
     heap_trim_period: float = Field(
         default=60.0, ge=0,

@@ -129,3 +129,39 @@ def test_a_scan_lost_while_later_ones_were_answered_is_counted_as_overtaken() ->
         led2.published(seq, send_stamp=100.0 + seq, record={"edge": "e2", "epoch": 2})
     assert led2.on_ack(ack(2, 102.0), 102.1) == "acked"
     assert led2.expire(now=110.0, timeout=1.0) == 2 and led2.counters["lost_overtaken"] == 2
+
+
+def edge_ack(seq: int, stamp: float, queue: float, proc: float, status: str = "ok") -> wire.ScanAck:
+    return wire.ScanAck(robot="r", seq=seq, send_stamp=stamp, status=status, interarrival=0.1,
+                        queue_time=queue, proc_time=proc, icp_time=proc, map_points=1, keypoints=1,
+                        sigma=0.3, pose=np.eye(4))
+
+
+def acked_with(led: ScanLedger, times: list[tuple[float, float]], status: str = "ok") -> None:
+    for queue, proc in times:
+        seq = len(led.records)
+        led.produced()
+        led.published(seq, send_stamp=float(seq), record={})
+        led.on_ack(edge_ack(seq, float(seq), queue, proc, status), recv_stamp=seq + 0.3)
+
+
+def test_the_window_widens_by_the_edge_s_time_per_scan() -> None:
+    led = ScanLedger()
+    assert led.window(3, 0.1) == 3  # nothing measured yet
+    acked_with(led, [(0.01, 0.02)] * 5)
+    assert led.window(3, 0.1) == 3  # 30 ms at the edge: under half a period
+    acked_with(led, [(0.03, 0.06)] * 6)  # 90 ms: the median moves to it
+    assert led.window(3, 0.1) == 4
+    assert led.window(0, 0.1) == 0  # no window stays no window
+    acked_with(led, [(0.2, 0.1)] * 20)  # 300 ms, 3 periods
+    assert led.window(3, 0.1) == 6 and led.window(2, 0.1) == 4  # at most doubled
+    acked_with(led, [(5.0, 5.0)] * 20)  # an overloaded (or lying) edge gains no more
+    assert led.window(3, 0.1) == 6
+
+
+def test_only_scans_the_edge_registered_count_for_the_window() -> None:
+    led = ScanLedger()
+    acked_with(led, [(0.3, 0.1)] * 10, status="dropped")  # dropped by the edge: no registration time
+    assert led.window(3, 0.1) == 3
+    acked_with(led, [(math.nan, 0.1)] * 10)  # no queue time reported
+    assert led.window(3, 0.1) == 3

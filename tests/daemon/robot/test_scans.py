@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+import queue
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,6 +23,7 @@ from zoffload.robot.scans import ScanStreamer, scan_streamer
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
+from zoffload.runtime.session import open_session
 from zoffload.sources.base import ScanFrame
 from zoffload.sources.simulated import SimulatedSource
 
@@ -187,3 +195,67 @@ def test_point_times_reach_the_edge(free_port: int) -> None:
     assert seen and all(0.09 < m.time_span <= 0.1 for m in seen)
     pts, times = seen[-1].cloud_and_times()
     assert times is not None and len(times) == len(pts) and times.max() <= 0.1 + 1e-6
+
+
+@contextmanager
+def slow_edge(port: int, answer_after: float, edge_time: float) -> Iterator[list[int]]:
+    """A stand-in for an edge whose registration takes ``edge_time`` (a busy edge computer; a real
+    one's time drifts with the machine's load, the assertion below needs it fixed): it answers
+    every scan ``answer_after`` seconds after it came, reporting ``edge_time`` as its queue and
+    registration time. Yields the seqs it received."""
+    seen: list[int] = []
+    due: queue.Queue[tuple[float, wire.Scan, float] | None] = queue.Queue()
+    session = open_session(listen_on(port))
+    token = session.liveliness().declare_token(KEYS.edge_alive("slow"))
+    pub = session.declare_publisher(KEYS.scan_ack("robot1"))
+
+    def on_scan(sample: Any) -> None:
+        msg = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
+        seen.append(msg.seq)
+        due.put((time.monotonic() + answer_after, msg, time.monotonic()))
+
+    def answer() -> None:
+        last = math.nan
+        while (item := due.get()) is not None:
+            at, msg, came = item
+            time.sleep(max(0.0, at - time.monotonic()))
+            pub.put(wire.encode(wire.ScanAck(
+                robot="robot1", seq=msg.seq, send_stamp=msg.send_stamp, status="ok",
+                interarrival=came - last if math.isfinite(last) else math.nan, queue_time=edge_time * 0.8,
+                proc_time=edge_time * 0.2, icp_time=edge_time * 0.2, map_points=1, keypoints=1, sigma=0.3,
+                pose=np.eye(4), edge="slow")))
+            last = came
+
+    sub = session.declare_subscriber(KEYS.scan("robot1"), on_scan)
+    worker = threading.Thread(target=answer, daemon=True)
+    worker.start()
+    try:
+        yield seen
+    finally:
+        due.put(None)
+        worker.join(5)
+        sub.undeclare()
+        token.undeclare()
+        session.close()
+
+
+@pytest.mark.parametrize("edge_time_window", [False, True])
+def test_the_window_leaves_the_scans_the_edge_holds_off_the_link(free_port: int,
+                                                                  edge_time_window: bool) -> None:
+    # answered 0.45 s after sending at 10 Hz: ~4.5 scans unanswered, of which the edge reports
+    # holding 0.4 s (4 periods; the window grows by at most its base, to 6)
+    with slow_edge(free_port, answer_after=0.45, edge_time=0.4):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=40, rate_hz=10,
+                                        scale_policy="fixed", scan_coding="f32",
+                                        window_edge_time=edge_time_window,
+                                        fleet=RobotFleetSettings(attach=False)))
+    m = robot.metrics()
+    window = m["dropped_source"].get("window", 0)
+    assert m["balanced"], m["balance"]
+    if edge_time_window:
+        assert window <= 4, m["dropped_source"]  # the first ones only, before an ack came
+        assert m["balance"]["acked"] >= 34, m["balance"]
+        held = [r for r in robot.ledger.records.values() if r.get("status") == "source:window"]
+        assert all("3 + 0 at the edge" in r["reason"] for r in held)  # ... with nothing measured
+    else:
+        assert window >= 8, m["dropped_source"]  # the window of 3, full with scans on the edge
