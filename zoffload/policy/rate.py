@@ -318,6 +318,20 @@ class LinkAwareScale:
         self.event = f"late ({cause}): budget cut to {self.budget / 1e3:.0f} kB"
 
     # Choice
+    def held_back(self, link: LinkView) -> Decision | None:
+        """A scan the robot's window holds back (never sized, never decided): in a stall (no ack
+        for ``stall_after`` with scans in flight) it is the stall skip ``decide`` would have made,
+        announced to the edge like one, and the stall is marked as ``decide`` marks it (the first
+        late scan after it held, the queue cap kept off for a while); else None (a window drop).
+        Without this an outage that begins with the window full (a path of ~3 periods) is all
+        window drops: none announced, and the policy never learns of the stall."""
+        if not (self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after):
+            return None
+        self._stalled = True
+        self._stall_scan = self._scans
+        return Decision(self.last_voxel, skip=True, cause="stall",
+                        reason=f"stall: no ack for {link.since_ack:.2f} s (window full)")
+
     def decide(self, n_points: int, link: LinkView, count: Callable[[float], int]) -> Decision:
         """The decision for a scan of ``n_points`` points; ``count(v)`` runs the grid pass at
         ``v`` on it and returns the voxels (the caller keeps the result for the chosen size)."""

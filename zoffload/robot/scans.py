@@ -265,7 +265,16 @@ class ScanStreamer:
         with self._lock:
             window = (self.ledger.window(self.opts.max_in_flight, self._period())
                       if self.opts.window_edge_time else self.opts.max_in_flight)
-            if window and self.ledger.in_flight >= window:
+            full = bool(window) and self.ledger.in_flight >= window
+        if full:
+            # in a stall the policy skips it on purpose (announced); else the window drops it
+            stall = self.sizer.held_back(self._link_view)
+            with self._lock:
+                if stall is not None:
+                    record.update(voxel=stall.voxel, reason=stall.reason)
+                    self.ledger.drop_at_source(reading.seq, stall.cause, record)
+                    self._skipped.append(reading.seq)
+                    return bridged
                 base = self.opts.max_in_flight
                 record["reason"] = (f"window full: {self.ledger.in_flight} unanswered "
                                     f"({base} + {window - base} at the edge)")

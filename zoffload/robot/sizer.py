@@ -140,6 +140,13 @@ class ScanSizer:
             return self._pack_grid(grids[decision.voxel][0], decision, len(pts))
         return self._pack_raw(pts, t, decision)
 
+    def held_back(self, link: Callable[[], LinkView]) -> Decision | None:
+        """The policy's word on a scan the window holds back (``LinkAwareScale.held_back``): a
+        stall skip, or None (a window drop; other policies have no stalls)."""
+        if isinstance(self.policy, LinkAwareScale):
+            return self.policy.held_back(link())
+        return None
+
     def _step(self, v: float) -> float:
         return quant_step(v, self.quant_fraction)
 

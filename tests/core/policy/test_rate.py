@@ -365,3 +365,23 @@ def test_the_budget_grows_only_as_far_as_the_link_has_shown_it_carries() -> None
     q.budget = 1e6
     q.update_budget(LinkView(0.1, 2.3e6, 2.0, 0.1, acks=1, recent=(AckInfo(230_000, 0.102, 0.1),)))
     assert q.budget == 1e6
+
+
+def test_a_scan_the_window_holds_back_in_a_stall_is_a_stall_skip() -> None:
+    pts = _scan()
+    p = LinkAwareScale((0.01, 0.07), stall_after=0.5)
+    p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
+    p.budget = 80_000.0
+    p.decide(len(pts), LinkView(0.1, 1e6, 6.0, 0.1, acks=1), counter(pts))
+    budget = p.budget
+    # the edge still answering: a window drop, not the policy's
+    assert p.held_back(LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=0.2, in_flight=3)) is None
+    d = p.held_back(LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=0.7, in_flight=3))
+    assert d is not None and d.skip and d.cause == "stall" and "window full" in d.reason
+    # the late scan after the outage is held, as after the policy's own stall skips (not cut)
+    queued = tuple(AckInfo(50_000, 0.030, 0.1) for _ in range(10)) + (AckInfo(50_000, 0.9, 1.0),)
+    p.update_budget(LinkView(1.0, 1e5, 6.0, 0.1, acks=2, recent=queued))
+    assert p.counts["late_stall"] == 1 and p.counts["late_size"] == 0 and p.budget == budget
+    # stall skipping off: the window's
+    q = LinkAwareScale((0.01, 0.07), stall_after=0.0)
+    assert q.held_back(LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=5.0, in_flight=3)) is None

@@ -198,12 +198,15 @@ def test_point_times_reach_the_edge(free_port: int) -> None:
 
 
 @contextmanager
-def slow_edge(port: int, answer_after: float, edge_time: float) -> Iterator[list[int]]:
+def slow_edge(port: int, answer_after: float, edge_time: float,
+              mute_from: int = -1, mute: float = 0.0) -> Iterator[list[tuple[int, int]]]:
     """A stand-in for an edge whose registration takes ``edge_time`` (a busy edge computer; a real
-    one's time drifts with the machine's load, the assertion below needs it fixed): it answers
-    every scan ``answer_after`` seconds after it came, reporting ``edge_time`` as its queue and
-    registration time. Yields the seqs it received."""
-    seen: list[int] = []
+    one's time drifts with the machine's load, the assertions need it fixed): it answers every
+    scan ``answer_after`` seconds after it came, reporting ``edge_time`` as its queue and
+    registration time; from scan ``mute_from`` on, no answer leaves it for ``mute`` seconds (an
+    outage on the way back). Yields the (seq, skipped) of the scans it received."""
+    seen: list[tuple[int, int]] = []
+    muted_until = [0.0]
     due: queue.Queue[tuple[float, wire.Scan, float] | None] = queue.Queue()
     session = open_session(listen_on(port))
     token = session.liveliness().declare_token(KEYS.edge_alive("slow"))
@@ -211,8 +214,10 @@ def slow_edge(port: int, answer_after: float, edge_time: float) -> Iterator[list
 
     def on_scan(sample: Any) -> None:
         msg = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
-        seen.append(msg.seq)
-        due.put((time.monotonic() + answer_after, msg, time.monotonic()))
+        seen.append((msg.seq, msg.skipped))
+        if msg.seq == mute_from:
+            muted_until[0] = time.monotonic() + mute
+        due.put((max(time.monotonic() + answer_after, muted_until[0]), msg, time.monotonic()))
 
     def answer() -> None:
         last = math.nan
@@ -259,3 +264,20 @@ def test_the_window_leaves_the_scans_the_edge_holds_off_the_link(free_port: int,
         assert all("3 + 0 at the edge" in r["reason"] for r in held)  # ... with nothing measured
     else:
         assert window >= 8, m["dropped_source"]  # the window of 3, full with scans on the edge
+
+
+def test_scans_the_window_holds_back_in_a_stall_are_skipped_and_announced(free_port: int) -> None:
+    # a quick edge whose answers stop for 0.9 s from scan 15 on: the window fills with 3 scans,
+    # and once no ack came for stall_after (0.5 s) the scans it holds back are stall skips, which
+    # the next scan sent announces (before: window drops, unannounced)
+    with slow_edge(free_port, answer_after=0.02, edge_time=0.01, mute_from=15, mute=0.9) as seen:
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=40, rate_hz=10,
+                                        scale_policy="rate", fleet=RobotFleetSettings(attach=False)))
+    m = robot.metrics()
+    assert m["balanced"], m["balance"]
+    stalls = m["dropped_source"].get("stall", 0)
+    assert stalls >= 2, m["dropped_source"]
+    held = [r for r in robot.ledger.records.values() if r.get("status") == "source:stall"]
+    assert all("window full" in r["reason"] for r in held)
+    announced = sum(skipped for seq, skipped in seen if seq > 15)
+    assert announced >= stalls, seen
