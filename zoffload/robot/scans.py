@@ -497,6 +497,8 @@ class ScanStreamer:
         # the period the policy judged lateness by: a live topic's measured one (its real rate)
         out["sensor_period_s"] = {"nominal": 1.0 / self.opts.rate_hz,
                                   "used": self._period()}
+        # a replay more than a period behind restarts its clock (no burst of overdue scans)
+        out["sensor_resynced"] = self._sensor.resynced if self._sensor is not None else 0
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
         if self.fleet_state is not None:
             out["fleet"] = self._fleet_metrics(totals, balance)

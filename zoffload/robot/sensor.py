@@ -56,6 +56,7 @@ class SensorThread:
         self.produced = 0
         self.overwritten = 0
         self.read_errors = 0
+        self.resynced = 0  # readings more than a period late: the replay clock restarted at them
         self.cpu_s = 0.0  # CPU time of this thread so far (reading, simulating, pacing)
         self.finished = threading.Event()
         self._stop = threading.Event()
@@ -85,6 +86,9 @@ class SensorThread:
                 frame = self.source.read(index)  # a live topic's: waits for its next message
                 self.cpu_s = time.thread_time()
                 due = clock.due(getattr(frame, "stamp", None))
+                if clock.behind(time.monotonic()):  # no burst of overdue readings
+                    self.resynced += 1
+                    due = time.monotonic()
                 delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     break

@@ -93,6 +93,16 @@ class ReplayClock:
         self._due += step
         return self._due
 
+    def behind(self, now: float) -> bool:
+        """Whether the reading just due is more than a period late at ``now`` (a slow first read,
+        the process stalled); then the clock restarts from ``now``: a sensor that was not read
+        for a while delivers its next scan, not the missed ones back to back (the simulator's
+        start-up otherwise sent a dozen scans 5 ms apart into the robot's window)."""
+        if self.live or now - self._due <= self.period:
+            return False
+        self._due = now
+        return True
+
 
 def _sim_options(text: str) -> dict[str, float | bool]:
     """``speed=4,sweep,laps=0.5`` as the simulator's keyword arguments."""

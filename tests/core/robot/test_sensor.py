@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from zoffload.robot import sensor as sensor_mod
@@ -59,3 +60,19 @@ def test_a_pause_is_not_a_gap(monkeypatch: pytest.MonkeyPatch) -> None:
     s = run(Paced(0.01, live=True, n=8, pause_at=4, pause=0.6), rate_hz=100.0)
     assert len(s._gaps) == 6  # 7 gaps, the pause left out
     assert s.period_now() < 0.05
+
+
+def test_a_replay_that_fell_behind_restarts_its_clock_instead_of_bursting() -> None:
+    # the first read takes 0.4 s (a simulator's start-up) at 20 Hz: the 7 readings after it were
+    # all overdue and came back to back, 5 ms apart; now a period apart, none overwritten
+    s = SensorThread(Paced(0.0, live=False, n=8, pause_at=0, pause=0.4), 20.0)
+    stamps: list[float] = []
+    s.start()
+    while not s.exhausted:
+        r = s.take(0.2)
+        if r is not None:
+            stamps.append(r.capture_stamp)
+    s.stop()
+    assert s.resynced == 1 and s.overwritten == 0 and len(stamps) == 8
+    gaps = list(np.diff(stamps))
+    assert min(gaps) >= 0.04, gaps

@@ -124,3 +124,13 @@ def test_images_from_a_bag(tmp_path: Path) -> None:
     comp = open_image_source(f"bag:{path}:/cam/image_raw/compressed")
     np.testing.assert_array_equal(comp.read(2).image, imgs[2])
     assert comp.read(2).stamp == pytest.approx(1.0)
+
+
+def test_a_clock_more_than_a_period_behind_restarts() -> None:
+    clock = ReplayClock(start=0.0, period=0.1)
+    assert clock.due() == pytest.approx(0.1)
+    assert not clock.behind(0.15)  # half a period late: kept
+    assert clock.due() == pytest.approx(0.2)
+    assert clock.behind(0.75)  # more than a period late: restarts there
+    assert clock.due() == pytest.approx(0.85)
+    assert not ReplayClock(0.0, 0.1, live=True).behind(100.0)
