@@ -325,12 +325,19 @@ class LinkAwareScale:
         late scan after it held, the queue cap kept off for a while); else None (a window drop).
         Without this an outage that begins with the window full (a path of ~3 periods) is all
         window drops: none announced, and the policy never learns of the stall."""
+        skip = self._stall(link, suffix=" (window full)")
+        if skip is not None:
+            self._stall_scan = self._scans  # (``decide`` marks it in ``update_budget``)
+        return skip
+
+    def _stall(self, link: LinkView, prefix: str = "", suffix: str = "") -> Decision | None:
+        """The stall skip, when no ack came for ``stall_after`` with scans in flight (anything
+        sent then would queue behind the stall); it holds the first late scan after it."""
         if not (self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after):
             return None
         self._stalled = True
-        self._stall_scan = self._scans
         return Decision(self.last_voxel, skip=True, cause="stall",
-                        reason=f"stall: no ack for {link.since_ack:.2f} s (window full)")
+                        reason=f"{prefix}stall: no ack for {link.since_ack:.2f} s{suffix}")
 
     def decide(self, n_points: int, link: LinkView, count: Callable[[float], int]) -> Decision:
         """The decision for a scan of ``n_points`` points; ``count(v)`` runs the grid pass at
@@ -350,10 +357,8 @@ class LinkAwareScale:
             self.budget = count(self.start) * link.bytes_per_point
         self.update_budget(link)
         event = f"{self.event}; " if self.event else ""
-        if self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after:
-            self._stalled = True
-            return Decision(self.last_voxel, skip=True, cause="stall",
-                            reason=f"{event}stall: no ack for {link.since_ack:.2f} s")
+        if (stall := self._stall(link, prefix=event)) is not None:
+            return stall
         if self._skip_left > 0:
             self._skip_left -= 1
             return Decision(self.last_voxel, skip=True, cause="pace",

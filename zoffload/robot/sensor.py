@@ -85,15 +85,14 @@ class SensorThread:
                     break
                 frame = self.source.read(index)  # a live topic's: waits for its next message
                 self.cpu_s = time.thread_time()
-                due = clock.due(getattr(frame, "stamp", None))
-                if clock.behind(time.monotonic()):  # no burst of overdue readings
+                due, mono = clock.due(getattr(frame, "stamp", None)), time.monotonic()
+                if clock.behind(mono):  # no burst of overdue readings
                     self.resynced += 1
-                    due = time.monotonic()
-                delay = due - time.monotonic()
+                    due = mono
+                delay = due - mono
                 if delay > 0 and self._stop.wait(delay):
                     break
-                if live:
-                    mono = time.monotonic()
+                if live:  # never waited above (a live reading is due at once): ``mono`` is now
                     if last is not None and 0 < mono - last <= max(GAP_MOST, 5 * self.period):
                         with self._cond:
                             self._gaps.append(mono - last)
