@@ -108,6 +108,42 @@ def test_router_waits_longer_before_dropping_unless_told_otherwise() -> None:
     assert router_zenoh(mine) == mine
 
 
+def test_a_peer_robot_listens_only_where_told() -> None:
+    """A robot peer without ``listen`` opens no listener, so no edge can dial it back (two links
+    in one session: runtime/session.py ``dialling_only``); one told to listen, a client, a config
+    file or the user's own ``listen/endpoints`` are left alone."""
+    import psutil
+
+    from zoffload.robot.server import robot_zenoh
+    from zoffload.runtime.session import LISTEN_KEY, free_tcp_port, open_session
+
+    def listening(z: ZenohSettings) -> list[int]:
+        before = {c.laddr.port for c in psutil.Process().net_connections("tcp") if c.status == "LISTEN"}
+        session = open_session(robot_zenoh(z))
+        try:
+            now = {c.laddr.port for c in psutil.Process().net_connections("tcp") if c.status == "LISTEN"}
+        finally:
+            session.close()
+        return sorted(now - before)
+
+    quiet = ZenohSettings(multicast_scouting=False, shared_memory=False)
+    assert f"{LISTEN_KEY}:[]" in robot_zenoh(quiet).cfg
+    assert listening(quiet) == []
+    port = free_tcp_port()
+    told = quiet.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
+    assert listening(told) == [port]
+    for z in (told, quiet.model_copy(update={"mode": "client"}),
+              quiet.model_copy(update={"cfg": [f'{LISTEN_KEY}:["tcp/127.0.0.1:{port}"]']})):
+        added = [c for c in robot_zenoh(z).cfg if c not in z.cfg]
+        assert not any(c.startswith(LISTEN_KEY) for c in added), added
+    # Zenoh's own default for a peer (what the robot had before): a listener on a random port
+    plain = open_session(quiet)
+    try:
+        assert any(c.status == "LISTEN" for c in psutil.Process().net_connections("tcp"))
+    finally:
+        plain.close()
+
+
 ROBOT = "ZOFFLOAD_ROBOT__"
 EDGE = "ZOFFLOAD_EDGE__"
 

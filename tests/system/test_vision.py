@@ -192,8 +192,10 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     assert any(t_stop < p["start"] < t_cont and p["end"] > t_stop + 2.0 for p in spans), after(spans)
     # not before the lease ran out, not after the held put was let go (+ 250 ms)
     assert falls and t_stop + 1.5 < falls[0]["start"] < max(p["end"] for p in spans) + 0.25, after(falls)
-    # resumed once it answered (CI once saw no resume for the rest of the run, cause unknown: the
-    # robot's log was not kept; a failure now says what the robot saw)
+    # resumed once it answered. CI twice saw no resume for the rest of the run: the edge's token
+    # came back, no frame or ping was answered. Zenoh's log (RUST_LOG=zenoh_transport=debug) showed
+    # the edge dialling the robot back while the robot redialled it, the split of
+    # eclipse-zenoh/zenoh#2806; the robot no longer listens unless told (robot/server.py robot_zenoh)
     assert np.isfinite(falls[0]["end"]) and falls[0]["end"] > t_cont, (
         f"{_story(robot, 'stopped', t_stop)}\n{b}\n{m['other']}\nedge:\n"
         + "\n".join([line for line in edge.text().splitlines() if " DEBUG " not in line][-20:]))

@@ -203,6 +203,7 @@ class DetectorService:
             self._cond.notify_all()
         if self._thread.is_alive():
             self._thread.join(timeout=5)
+        log.info("detector stopped: %s, drops %s", self.balance(), self.drops.snapshot())
 
     def _pub(self, robot: str) -> zenoh.Publisher:
         """The robot's detections publisher (called with the lock held, for admitted robots)."""

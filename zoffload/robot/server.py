@@ -27,15 +27,23 @@ from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.robot.pipeline import Pipeline
 from zoffload.robot.presence import EdgePresence
-from zoffload.runtime.config import RobotSettings
+from zoffload.runtime.config import RobotSettings, ZenohSettings
 from zoffload.runtime.errors import ConfigError
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
 from zoffload.runtime.memory import HeapTrimmer
-from zoffload.runtime.session import MAX_MESSAGE_KEY, open_session, undeclare, with_defaults
+from zoffload.runtime.session import MAX_MESSAGE_KEY, dialling_only, open_session, undeclare, with_defaults
 
 log = logging.getLogger("zoffload.robot")
 ROBOT_MAX_MESSAGE = 64 * 1024 * 1024
+
+
+def robot_zenoh(z: ZenohSettings) -> ZenohSettings:
+    """The robot's session settings: it takes acks, detections and checkpoints, and a message of
+    more than 64 MiB is no answer of an edge (Zenoh's own default is 1 GiB); as a peer it dials its
+    edges and listens only where told, so no one dials it back (runtime/session.py
+    ``dialling_only``). Keys the user's ``--cfg`` or config file sets are left alone."""
+    return with_defaults(z, {MAX_MESSAGE_KEY: str(ROBOT_MAX_MESSAGE), **dialling_only(z)})
 
 
 class RobotServer:
@@ -57,9 +65,7 @@ class RobotServer:
     def startup(self) -> None:
         s = self.settings
         if self.session is None:
-            # The robot takes acks, detections and checkpoints: a message of more than 64 MiB is
-            # no answer of an edge (Zenoh's own default is 1 GiB)
-            self.session = open_session(with_defaults(s.zenoh, {MAX_MESSAGE_KEY: str(ROBOT_MAX_MESSAGE)}))
+            self.session = open_session(robot_zenoh(s.zenoh))
         self._token = self.session.liveliness().declare_token(self.keys.robot_alive(s.robot_id))
         self._status_pub = self.session.declare_publisher(
             self.keys.robot_status(s.robot_id), congestion_control=zenoh.CongestionControl.DROP)

@@ -30,6 +30,10 @@ def setup_logging(level: str | None = None) -> None:
         level=(level or os.environ.get("ZOFFLOAD_LOG", "INFO")).upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if os.environ.get("RUST_LOG"):  # Zenoh's own log (e.g. RUST_LOG=zenoh_transport=debug), to stderr
+        import zenoh
+
+        zenoh.try_init_log_from_env()
 
 
 SHUTDOWN_LIMIT = 60.0
