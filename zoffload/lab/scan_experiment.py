@@ -105,11 +105,20 @@ DELIBERATE = ("source:pace", "source:skip", "source:stall")  # the robot chose n
 SLOT_SLACK = 1.1  # on time for its slot: T <= 1.1 x the period the robot intended
 
 
+def kept_local(recs: list[dict[str, Any]]) -> int:
+    """Scans the robot kept while its edge's answers were overdue (status ``local``) and registered
+    with its own odometry (``pose_source`` local): not sent, bridged by a real pose that joins the
+    edge's trajectory when the robot attaches again."""
+    return sum(r.get("status") == "local" and r.get("pose_source") == "local" for r in recs)
+
+
 def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], period: float,
                   produced: int) -> dict[str, Any]:
     """Skipped scans and timeliness per slot: a scan sent after k deliberately skipped ones was
-    meant to arrive (k + 1) periods after the previous one."""
+    meant to arrive (k + 1) periods after the previous one. ``delivered_skipped_or_local`` also
+    counts the scans an outage kept local (``kept_local``)."""
     skipped = sum(r.get("status") in DELIBERATE for r in recs)
+    local = kept_local(recs)
     on_time = [float(r["interarrival"]) <= SLOT_SLACK * period * (1 + int(float(r.get("skipped") or 0)))
                for r in received if r.get("interarrival") not in (None, "")
                and np.isfinite(float(r["interarrival"]))]
@@ -117,6 +126,8 @@ def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], pe
         "scans_skipped": skipped,
         "skipped_share": skipped / produced if produced else None,
         "delivered_or_skipped": (len(received) + skipped) / produced if produced else None,
+        "scans_kept_local": local,
+        "delivered_skipped_or_local": (len(received) + skipped + local) / produced if produced else None,
         "on_time_slot": float(np.mean(on_time)) if on_time else None,
     }
 

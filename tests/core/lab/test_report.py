@@ -58,3 +58,27 @@ def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) ->
     assert "rate (2 runs)" in line and "92 ± 3 / 100" in line and "0.300 ± 0.071" in line
     assert "2.00 ± 1.41" in line and "10 ± 0 %" in line and "90 ± 0 %" in line and "-50 %" in line
     assert "| 80 ± 0 % |" in line  # T <= 0.11 s
+
+
+def test_scans_an_outage_kept_local_are_counted_beside_the_delivered_and_skipped(tmp_path: Path) -> None:
+    """A run from before the figure gets it from its records: scans booked ``local`` with the
+    robot's own pose are bridged, not lost; a local one without a pose, or a lost one, is not."""
+    import csv
+    import json
+
+    from zoffload.lab.eval.report import load_run
+
+    folder = tmp_path / "run1"
+    folder.mkdir()
+    (folder / "results.json").write_text(json.dumps({"delivered_or_skipped": 0.5, "scans_produced": 10}))
+    statuses = [("acked", "edge")] * 4 + [("source:stall", "")] + [("local", "local")] * 3 + [
+        ("local", ""), ("lost", "local")]
+    with open(folder / "scans.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["seq", "status", "pose_source"])
+        w.writeheader()
+        w.writerows({"seq": i, "status": s, "pose_source": p} for i, (s, p) in enumerate(statuses))
+    run = load_run(folder)
+    assert run["scans_kept_local"] == 3 and run["delivered_skipped_or_local"] == pytest.approx(0.8)
+    r = dict(row("rate", 100_000), delivered_or_skipped=0.5, delivered_skipped_or_local=0.8)
+    line = table_markdown([r]).splitlines()[2]
+    assert line.endswith("| 50 % | 80 % |"), line
