@@ -140,14 +140,21 @@ class MapperRecipe:
         voxelset.warmup()
         load_kiss_icp()
 
-    def __call__(self, scan: wire.Scan, spill: Spill | None = None) -> BoundedMapper:
-        # The edge's own settings are taken as they are; what the scan says is clamped
-        max_range = self.max_range or clamp(scan.max_range, RANGE_BOUNDS)
-        size = self.voxel_size or clamp(mapper_voxel_size(max_range, scan.voxel_max), VOXEL_BOUNDS)
-        log.info("robot %s: KISS-ICP voxel %.3f m, max range %.1f m (robot: max range %.1f m, voxel_max "
-                 "%.3f m)", scan.robot, size, max_range, scan.max_range, scan.voxel_max)
+    def mapper(self, max_range: float, voxel_max: float) -> RobotMapper:
+        """The KISS-ICP for a robot that says this max range and voxel_max: the edge's own
+        settings are taken as they are; what the robot says is clamped (also the offline remap's,
+        lab/remap.py)."""
+        max_range = self.max_range or clamp(max_range, RANGE_BOUNDS)
+        size = self.voxel_size or clamp(mapper_voxel_size(max_range, voxel_max), VOXEL_BOUNDS)
         inner = RobotMapper(voxel_size=size, max_range=max_range, min_range=self.min_range,
                             max_points_per_voxel=self.max_points_per_voxel, deskew=self.deskew,
                             map_resolution=self.map_resolution)
         inner.global_map.set_budget(self.map_budget)
+        return inner
+
+    def __call__(self, scan: wire.Scan, spill: Spill | None = None) -> BoundedMapper:
+        inner = self.mapper(scan.max_range, scan.voxel_max)
+        max_range = inner.config.data.max_range
+        log.info("robot %s: KISS-ICP voxel %.3f m, max range %.1f m (robot: max range %.1f m, voxel_max "
+                 "%.3f m)", scan.robot, inner.voxel_size, max_range, scan.max_range, scan.voxel_max)
         return BoundedMapper(inner, max_range, self.trajectory_budget, spill)

@@ -1,7 +1,7 @@
 """``python -m zoffload.lab.remap RUN...``: a scan experiment's run registered again, offline, by the
 edge's mapper of this code: the scans the edge answered (``robot_scans.csv`` status ``acked``), in
 sequence order, each voxel-downsampled at the size the robot sent it, into a ``RobotMapper`` sized
-as the edge sizes it (``edge/recipe.py``), and its trajectory error against the run's reference
+as the edge sizes it (``MapperRecipe.mapper``), and its trajectory error against the run's reference
 (the simulator's ground truth, or KISS-ICP locally on every raw scan). It answers "would the
 mapper of now have kept this run?" for a run that broke, without its link, and is deterministic
 where a live run is not (which scans a link loses varies from run to run).
@@ -26,10 +26,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from zoffload.edge.recipe import RANGE_BOUNDS, VOXEL_BOUNDS, clamp
+from zoffload.edge.recipe import MapperRecipe
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.cloud import drop_non_finite
-from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.sources.base import open_scan_source
 
@@ -63,10 +62,8 @@ def remap(folder: Path) -> dict[str, Any]:
     if len(sent) < 2:
         raise ValueError(f"{folder}: {len(sent)} answered scans, nothing to register")
     source = open_scan_source(str(cfg["scans"]), sim_seed=int(cfg.get("sim_seed") or 0))
-    max_range = clamp(source.max_range, RANGE_BOUNDS)
     voxel_max = float((cfg.get("voxel_range") or [0.0, cfg.get("voxel") or 0.0])[1])
-    mapper = RobotMapper(voxel_size=clamp(mapper_voxel_size(max_range, voxel_max), VOXEL_BOUNDS),
-                         max_range=max_range)
+    mapper = MapperRecipe().mapper(source.max_range, voxel_max)  # the edge's defaults
     truth: dict[int, np.ndarray] = {}
     kept: dict[str, int] = {}
     for seq in sorted(sent):

@@ -167,21 +167,6 @@ def undeclare(*entities: Any) -> None:
 
 MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
 LISTEN_KEY = "listen/endpoints"
-
-
-def dialling_only(z: ZenohSettings) -> dict[str, str]:
-    """The setting that keeps a peer without ``listen`` endpoints from listening at all (Zenoh's
-    peers otherwise listen on a random port of every interface): a program that only dials, as a
-    robot does, cannot then be dialled back. A peer that learns its address by gossip (an edge,
-    told by a third peer) dials it while it dials the edge itself, and the two links make one
-    Zenoh session; when one side's lease runs out first (an edge frozen past the 2 s lease), Zenoh
-    can add the redial to the stale session on the other side and never send its declarations
-    again (eclipse-zenoh/zenoh#2806, open). The frozen-edge test saw its like in CI
-    (tests/system/test_vision.py): the robot saw the edge's token come back, and no frame or ping
-    was answered for the rest of the run; Zenoh's log of that test shows the edge dialling the
-    robot back. Nothing when the settings give endpoints to listen on, a config file, or another
-    mode."""
-    return {LISTEN_KEY: "[]"} if z.mode == "peer" and not z.listen else {}
 DROP_WAIT_KEY = "transport/link/tx/queue/congestion_control/drop/wait_before_drop"
 DROP_WAIT_US = 50_000
 """How long a node's transport waits before it drops a message it cannot queue, in microseconds
@@ -200,3 +185,18 @@ def with_defaults(z: ZenohSettings, defaults: dict[str, str]) -> ZenohSettings:
     given = {item.split(":", 1)[0] for item in z.cfg}
     extra = [f"{k}:{v}" for k, v in defaults.items() if k not in given]
     return z.model_copy(update={"cfg": [*extra, *z.cfg]}) if extra else z
+
+
+def dialling_only(z: ZenohSettings) -> dict[str, str]:
+    """The setting that keeps a peer without ``listen`` endpoints from listening at all (Zenoh's
+    peers otherwise listen on a random port of every interface): a program that only dials, as a
+    robot does, cannot then be dialled back. A peer that learns its address by gossip (an edge,
+    told by a third peer) dials it while it dials the edge itself, and the two links make one
+    Zenoh session; when one side's lease runs out first (an edge frozen past the 2 s lease), Zenoh
+    can add the redial to the stale session on the other side and never send its declarations
+    again (eclipse-zenoh/zenoh#2806, open). The frozen-edge test saw its like in CI
+    (tests/system/test_vision.py): the robot saw the edge's token come back, and no frame or ping
+    was answered for the rest of the run; Zenoh's log of that test shows the edge dialling the
+    robot back. Nothing when the settings give endpoints to listen on, or in another mode (with a
+    config file, ``with_defaults`` leaves every key to it)."""
+    return {LISTEN_KEY: "[]"} if z.mode == "peer" and not z.listen else {}
