@@ -78,3 +78,18 @@ def test_the_salt_moves_slots_not_results_and_scatters_crafted_points() -> None:
     # Loose bounds: the machine is shared
     assert unsalted > 10 * with_salt, (unsalted, with_salt)
     assert with_salt < 10 * random_t + 0.02, (with_salt, random_t)
+
+
+def test_a_reused_grid_leaves_its_table_empty_whichever_way_it_clears_it() -> None:
+    # A fine grid of a scattered cloud fills most of the table (cleared with one fill); a coarse one
+    # uses a few slots (cleared slot by slot). A slot left behind would send the next pass's points
+    # to a voxel of the last one.
+    rng = np.random.default_rng(11)
+    grid = VoxelGrid()
+    for i, v in enumerate([0.01, 1.0, 0.01, 0.02, 2.0, 0.01]):
+        pts = rng.uniform(-5, 5, size=(3000, 3)).astype(np.float32) + np.float32(i)
+        got = grid.run(pts, v)
+        ref = reference_grid(pts, v)
+        assert len(got) == len(ref) and got.counts.sum() == len(pts)
+        np.testing.assert_allclose(np.array(sorted(map(tuple, got.centroids()))),
+                                   np.array(sorted(map(tuple, ref.values()))), rtol=0, atol=1e-9)
