@@ -81,4 +81,40 @@ def test_scans_an_outage_kept_local_are_counted_beside_the_delivered_and_skipped
     assert run["scans_kept_local"] == 3 and run["delivered_skipped_or_local"] == pytest.approx(0.8)
     r = dict(row("rate", 100_000), delivered_or_skipped=0.5, delivered_skipped_or_local=0.8)
     line = table_markdown([r]).splitlines()[2]
-    assert line.endswith("| 50 % | 80 % |"), line
+    assert line.endswith("| 50 % | 80 % |  |"), line  # no trajectories: nothing against local
+
+
+def test_trajectory_against_local_is_taken_over_the_same_scans(tmp_path: Path) -> None:
+    """Local registers every scan; an offloaded run only those its edge did. Here local drifts
+    10 % of the distance and the offloaded run 20 %, but only over the first half of the drive,
+    where local's error is still small: over all scans the offloaded run looks 8 % better than
+    local, over the same scans it is twice local's error (+100 %)."""
+    import numpy as np
+
+    from zoffload.lab.eval.report import aggregate, same_scans_vs_local
+
+    def poses(xs: np.ndarray) -> np.ndarray:
+        out = np.tile(np.eye(4), (len(xs), 1, 1))
+        out[:, 0, 3] = xs
+        return out
+
+    seqs = np.arange(10)
+    local_dir, run_dir = tmp_path / "local", tmp_path / "rate" / "run1"
+    for d in (local_dir, run_dir):
+        d.mkdir(parents=True)
+    np.savez(local_dir / "trajectory.npz", seqs=seqs, poses=poses(1.1 * seqs))
+    np.savez(run_dir / "trajectory.npz", seqs=seqs[:5], poses=poses(1.2 * seqs[:5]))
+    np.savez(run_dir / "robot_poses.npz", gt_seqs=seqs, gt_poses=poses(seqs.astype(float)))
+    sim = {"trajectory_reference": "simulator ground truth"}
+    local = dict(row("local", 200_000, 100), folder=local_dir, **sim,
+                 trajectory_error={"ate_rmse": float(np.sqrt(np.mean((0.1 * seqs) ** 2)))})
+    rate = dict(row("rate", 100_000), folder=run_dir, **sim,
+                trajectory_error={"ate_rmse": float(np.sqrt(np.mean((0.2 * seqs[:5]) ** 2)))})
+    rows = aggregate([local, rate])
+    same = same_scans_vs_local(rows[1], rows[0])
+    assert same is not None and same[0] == pytest.approx(1.0) and same[1] is None
+    assert rows[1]["trajectory_error"]["ate_rmse"] < rows[0]["trajectory_error"]["ate_rmse"]
+    assert table_markdown(rows).splitlines()[3].endswith("| +100 % |")
+    # no ground truth (KITTI-360's reference is KISS-ICP itself): no figure
+    kitti = dict(rows[1], trajectory_reference="KISS-ICP run locally on every raw scan")
+    assert same_scans_vs_local(kitti, rows[0]) is None
