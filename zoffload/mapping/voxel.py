@@ -10,9 +10,8 @@ run of consecutive points sharing a voxel in registers and touches the table onc
 prefetching the slot of the point ``PREFETCH_AHEAD`` on (the table is the pass's one random
 access). The table holds voxel ids (int32, at least twice as many slots as points) and is reset by
 clearing only the slots used, or the whole table when most were, so a coarse grid does not pay
-for a table sized for the raw scan. Per-point
-times, when a scan has them, are averaged like the coordinates (a centroid's time is the mean of
-its points' times).
+for a table sized for the raw scan. Per-point times, when a scan has them, are averaged like the
+coordinates (a centroid's time is the mean of its points' times).
 
 The table's hash is salted per process: ``(key ^ salt) * GOLDEN``. Points may come from the
 network (ROS topics), and with a public hash a sender could choose points whose voxels share one

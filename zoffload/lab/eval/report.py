@@ -104,20 +104,20 @@ def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def _trajectory(folder: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
-    path = Path(folder or "") / "trajectory.npz"
-    if folder is None or not path.exists():
+def _npz_pair(folder: Path | None, name: str, keys: tuple[str, str]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Two arrays of ``folder/name`` (None: no folder, no file, or nothing in it)."""
+    if folder is None or not (Path(folder) / name).exists():
         return None
-    with np.load(path) as z:
-        return z["seqs"], z["poses"]
+    with np.load(Path(folder) / name) as z:
+        return (z[keys[0]], z[keys[1]]) if len(z[keys[0]]) else None
+
+
+def _trajectory(folder: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
+    return _npz_pair(folder, "trajectory.npz", ("seqs", "poses"))
 
 
 def _ground_truth(folder: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
-    path = Path(folder or "") / "robot_poses.npz"
-    if folder is None or not path.exists():
-        return None
-    with np.load(path) as z:
-        return (z["gt_seqs"], z["gt_poses"]) if len(z["gt_seqs"]) else None
+    return _npz_pair(folder, "robot_poses.npz", ("gt_seqs", "gt_poses"))
 
 
 def same_scans_vs_local(row: dict[str, Any], local: dict[str, Any]) -> tuple[float, float | None] | None:
@@ -176,8 +176,10 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
         vs = (f"{100 * (r['map_points'] / ref['map_points'] - 1):+.0f} %"
               if ref and ref is not r and ref["map_points"] else "")
         same = same_scans_vs_local(r, ref) if ref and ref is not r else None
-        same_text = "" if same is None else (f"{100 * same[0]:+.0f}" + (f" ± {100 * same[1]:.0f}" if same[1]
-                                                                        is not None else "") + " %")
+        same_text = ""
+        if same is not None:
+            spread = f" ± {100 * same[1]:.0f}" if same[1] is not None else ""
+            same_text = f"{100 * same[0]:+.0f}{spread} %"
         name = r["policy"] + (f" ({r['n']} runs)" if r["n"] > 1 else "")
         received = (_cell(r, "scans_received", ".0f") if r["n"] > 1 else str(r["scans_received"]))
         lines.append(
