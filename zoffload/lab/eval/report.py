@@ -136,18 +136,18 @@ def same_scans_vs_local(row: dict[str, Any], local: dict[str, Any]) -> tuple[flo
     ratios = []
     for run in row.get("runs", [row]):
         own, gt = _trajectory(run.get("folder")), _ground_truth(run.get("folder"))
-        if own is None or gt is None:
+        mine = _get(run, "trajectory_error.ate_rmse")  # the experiment's, over these scans and truth
+        if own is None or gt is None or mine is None:
             return None
-        mine = trajectory_error(own[0], own[1], gt[0], gt[1])
         theirs = []
         for seqs, poses in local_runs:
             keep = np.isin(seqs, own[0])
             err = trajectory_error(seqs[keep], poses[keep], gt[0], gt[1])
             if err is not None:
                 theirs.append(err.ate_rmse)
-        if mine is None or not theirs or not statistics.fmean(theirs) > 0:
+        if not theirs or not statistics.fmean(theirs) > 0:
             return None
-        ratios.append(mine.ate_rmse / statistics.fmean(theirs) - 1)
+        ratios.append(float(mine) / statistics.fmean(theirs) - 1)
     return statistics.fmean(ratios), (statistics.stdev(ratios) if len(ratios) > 1 else None)
 
 
