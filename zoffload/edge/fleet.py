@@ -43,6 +43,7 @@ class Attached:
     final: str = ""  # "" no final checkpoint asked, "pending", "sent"
     shed: bool = False
     moved: bool = False  # its scans now name another edge
+    reads: int = 5  # the newest codec version its attach said it reads (6: coded checkpoints)
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,10 @@ def check_attach(attach: wire.Attach, robot: str, limits: wire.Limits = wire.DEF
             return None, f"bad checkpoint: made for robot {cp.robot!r}"
         if not _rigid(cp.pose[None]) or not _rigid(cp.delta[None]):
             return None, "bad checkpoint: pose or delta is not a rigid transform"
+        try:
+            cp.cloud(limits)  # a coded local map must decode (seeding it comes later)
+        except wire.WireError as exc:
+            return None, f"bad checkpoint: {str(exc)[:200]}"
     seqs = np.asarray(attach.local_seqs, np.int64)
     if len(seqs):
         if np.any(np.diff(seqs) <= 0):
@@ -133,9 +138,9 @@ class Fleet:
             return f"full: {robots} of {capacity} robots"
         return ""
 
-    def attach(self, robot: str, epoch: int, now: float) -> None:
+    def attach(self, robot: str, epoch: int, now: float, reads: int = 5) -> None:
         self._order += 1
-        self.attached[robot] = Attached(epoch, self._order, now)
+        self.attached[robot] = Attached(epoch, self._order, now, reads=reads)
         self.epochs.pop(robot, None)
         self.epochs[robot] = epoch
         while len(self.epochs) > EPOCHS_KEPT:

@@ -365,7 +365,7 @@ class MappingService:
             if not detail and not self.admission.admit(robot, now):
                 detail = f"not admitted: {self.admission.why_refused(robot)}"
             if not detail:
-                self.fleet.attach(robot, attach.epoch, now)
+                self.fleet.attach(robot, attach.epoch, now, attach.reads)
                 rs = rs or self._new_robot(robot)
                 rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses)
                 rs.final_pending = False
@@ -396,7 +396,10 @@ class MappingService:
         mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
         t0 = time.perf_counter()
         resolution = self.final_checkpoint_resolution if final else self.checkpoint_resolution
-        cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, resolution, final)
+        with self._lock:
+            entry = self.fleet.attached.get(rs.robot)
+            coded = entry is not None and entry.reads >= 6  # else float32, as version 5 reads it
+        cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, resolution, final, coded)
         if cp is None:
             return False
         data = wire.encode(cp)
@@ -431,6 +434,8 @@ class MappingService:
             self._send_checkpoint(rs, entry.epoch, final=True)
         elif rs.pending is not None and rs.pending.checkpoint is not None and self._session is not None:
             cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch, final=True)
+            if entry.reads < 6:
+                cp = cp.plain()
             self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
                               congestion_control=zenoh.CongestionControl.BLOCK)
             self._count(rs, "final_checkpoints")

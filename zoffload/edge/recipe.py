@@ -110,11 +110,13 @@ class BoundedMapper:
         return self.inner.predict_from(seq, prior_seq, pose, delta)
 
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
-                   final: bool = False) -> wire.Checkpoint | None:
-        """The odometry's state after its last scan; None before it has one."""
+                   final: bool = False, coded: bool = True) -> wire.Checkpoint | None:
+        """The odometry's state after its last scan (``coded``: its map as version 6 codes it);
+        None before it has one."""
         if self.inner.last_seq is None:
             return None
-        cp = take_checkpoint(self.inner.odometry, robot, edge, epoch, self.inner.last_seq, stamp, resolution)
+        cp = take_checkpoint(self.inner.odometry, robot, edge, epoch, self.inner.last_seq, stamp, resolution,
+                             coded)
         return replace(cp, final=True) if final else cp
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:

@@ -227,7 +227,7 @@ class EdgeServer:
     def main_loop(self) -> None:
         assert self._status_pub is not None, "main_loop() runs after startup()"
         period = self.settings.status_period
-        due = time.monotonic() + period
+        due = time.monotonic()  # the first at once: a robot asks an edge once it knows what it reads
         while not self.stop.wait(min(TICK, max(0.0, due - time.monotonic()))):
             now = time.monotonic()
             if self._drain.is_set():

@@ -1,17 +1,20 @@
 """``python -m zoffload.lab.remap RUN...``: a scan experiment's run registered again, offline, by the
 edge's mapper of this code: the scans the edge answered (``robot_scans.csv`` status ``acked``), in
-sequence order, each voxel-downsampled at the size the robot sent it, into a ``RobotMapper`` sized
+sequence order, each voxel-downsampled at the size the robot sent it and, for a q16 coding, through
+the codec at the robot's step (a tenth of the voxel, at least 5 mm), into a ``RobotMapper`` sized
 as the edge sizes it (``MapperRecipe.mapper``), and its trajectory error against the run's reference
 (the simulator's ground truth, or KISS-ICP locally on every raw scan). It answers "would the
 mapper of now have kept this run?" for a run that broke, without its link, and is deterministic
 where a live run is not (which scans a link loses varies from run to run).
 
-It leaves out what the run's messages carried besides the points: the q16 quantisation (a tenth of
-the voxel, at least 5 mm), per-point times (deskew), and the robot's own poses while it bridged an
-outage (``--attach`` runs send them as priors): a run with poses from local odometry is refused,
-since its replay would not be the run. Remapping the run a mapper change is meant for shows the
-change; remapping the runs it was not meant for shows what else it changes (README, the scale
-policy's defaults rows).
+Outages an ``--attach`` run bridged (scans with ``pose_source`` local) are handed over as the run
+did: before the first answered scan after one, the mapper predicts from the robot's own newest pose
+in the outage and its motion per scan then (``RobotMapper.predict_from``, what a ``Scan.prior`` or
+an attach's local poses make the edge do), taken from ``robot_poses.npz`` relative to the robot's
+record of the edge's pose before the outage (the replay's frame drifts from the run's). With
+``--edge-bridges`` the mapper bridges those gaps itself instead (constant velocity and the gap
+guesses), which separates what the robot's odometry handed over from what the scans carried.
+Per-point times (deskew) are left out.
 """
 
 from __future__ import annotations
@@ -29,7 +32,10 @@ import yaml
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.cloud import drop_non_finite
+from zoffload.mapping.mapper import MOTION_SPAN, motion_per_scan
+from zoffload.mapping.se3 import as_rigid
 from zoffload.mapping.voxel import voxel_downsample
+from zoffload.protocol.coding import DECODERS, decode_q16d, encode_q16d, quant_step
 from zoffload.sources.base import open_scan_source
 
 
@@ -43,36 +49,62 @@ def _settings(folder: Path) -> dict[str, Any]:
     raise ValueError(f"{folder}: no robot_config.yaml or robot.yaml (not a scan experiment's run)")
 
 
-def remap(folder: Path) -> dict[str, Any]:
+def _robot_poses(folder: Path, local: set[int]) -> dict[int, np.ndarray]:
+    """Every pose the robot had per scan (``robot_poses.npz``: the edge's acked ones and its own);
+    ``ValueError`` when the run bridged outages (``local``) and the file is not there."""
+    path = folder / "robot_poses.npz"
+    if not path.exists():
+        if local:
+            raise ValueError(f"{folder}: {len(local)} scans have poses from the robot's local odometry "
+                             "(an outage it bridged) and there is no robot_poses.npz to hand them over from")
+        return {}
+    with np.load(path) as z:
+        return dict(zip(z["acked_seqs"].tolist(), z["acked_poses"], strict=True))
+
+
+def _as_sent(points: np.ndarray, voxel: float, coding: str, fraction: float) -> np.ndarray:
+    """The scan as the edge got it: downsampled at ``voxel`` and, for a q16 coding, on the codec's
+    grid (the robot's step: ``fraction`` of the voxel, at least 5 mm)."""
+    cloud = voxel_downsample(points, voxel) if voxel > 0 else points
+    if coding not in DECODERS or not len(cloud):
+        return cloud
+    origin, step, packed = encode_q16d(cloud, quant_step(voxel, fraction), level=None, widen=True)
+    return decode_q16d(packed, len(cloud), origin, step)[0]
+
+
+def remap(folder: Path, edge_bridges: bool = False) -> dict[str, Any]:
     """The run in ``folder`` registered again (module docstring): its trajectory error then, and
-    the one the run recorded (``results.json``) beside it."""
+    the one the run recorded (``results.json``) beside it. ``edge_bridges``: the mapper bridges
+    the outages the robot bridged in the run itself, from its own motion."""
     cfg = _settings(folder)
     scans_csv = folder / "robot_scans.csv"
     if not scans_csv.exists():
         raise ValueError(f"{folder}: no robot_scans.csv")
     with open(scans_csv) as f:
         rows = list(csv.DictReader(f))
-    local = sum(1 for r in rows if r.get("pose_source") == "local")
-    if local:
-        raise ValueError(f"{folder}: {local} scans have poses from the robot's local odometry (an "
-                         "outage it bridged): their priors are not in robot_scans.csv, so a replay would "
-                         "not be the run")
-    sent = {int(r["seq"]): (int(r["index"]), float(r["voxel"])) for r in rows
+    local = {int(r["seq"]) for r in rows if r.get("pose_source") == "local"}
+    robot = _robot_poses(folder, local)
+    sent = {int(r["seq"]): (int(r["index"]), float(r["voxel"]), str(r.get("coding") or "f32")) for r in rows
             if r.get("status") == "acked" and r.get("voxel") not in (None, "")}
     if len(sent) < 2:
         raise ValueError(f"{folder}: {len(sent)} answered scans, nothing to register")
     source = open_scan_source(str(cfg["scans"]), sim_seed=int(cfg.get("sim_seed") or 0))
     voxel_max = float((cfg.get("voxel_range") or [0.0, cfg.get("voxel") or 0.0])[1])
+    fraction = float(cfg.get("quant_fraction") or 0.1)
     mapper = MapperRecipe().mapper(source.max_range, voxel_max)  # the edge's defaults
     truth: dict[int, np.ndarray] = {}
     kept: dict[str, int] = {}
+    handovers, last = 0, None
     for seq in sorted(sent):
-        index, voxel = sent[seq]
+        index, voxel, coding = sent[seq]
+        if last is not None and not edge_bridges and _hand_over(mapper, robot, local, last, seq):
+            handovers += 1
         frame = source.read(index)
         if frame.gt_pose is not None:
             truth[seq] = frame.gt_pose
         points = drop_non_finite(frame.points)[0]
-        reg = mapper.register(seq, voxel_downsample(points, voxel) if voxel > 0 else points)
+        reg = mapper.register(seq, _as_sent(points, voxel, coding, fraction))
+        last = seq
         if reg.gap_motion:
             kept[reg.gap_motion] = kept.get(reg.gap_motion, 0) + 1
     if truth and len(truth) == len(sent):
@@ -92,18 +124,40 @@ def remap(folder: Path) -> dict[str, Any]:
         recorded = (json.loads(results.read_text()).get("trajectory_error") or {}).get("ate_rmse")
     return {"run": str(folder), "scans": len(sent), "reference": reference,
             "ate_rmse": None if err is None else err.ate_rmse, "recorded_ate_rmse": recorded,
-            "after_gap": mapper.after_gap, "guessed": mapper.guessed, "gap_guesses_kept": kept}
+            "after_gap": mapper.after_gap, "guessed": mapper.guessed, "gap_guesses_kept": kept,
+            "handovers": handovers, "bridged_by": "edge" if edge_bridges or not local else "robot"}
+
+
+def _hand_over(mapper: Any, robot: dict[int, np.ndarray], local: set[int], last: int, seq: int) -> bool:
+    """Before ``seq``, after a gap since ``last`` that the robot bridged: predict ``seq`` from the
+    robot's newest own pose in the gap, moved into this replay's frame by the robot's record of
+    the edge's pose of ``last``. Returns whether it was taken."""
+    bridged = [q for q in local if last < q < seq and q in robot]
+    if not bridged or last not in robot:
+        return False
+    q = max(bridged)
+    own = dict(zip(*mapper.trajectory(), strict=True))
+    if last not in own:
+        return False
+    frame = own[last] @ np.linalg.inv(robot[last])  # the run's world into the replay's
+    span = sorted(s for s in robot if q - MOTION_SPAN <= s <= q)
+    delta = motion_per_scan(np.array(span), np.array([robot[s] for s in span]))
+    if delta is None:
+        return False
+    return bool(mapper.predict_from(seq, q, as_rigid(frame @ robot[q]), delta))
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m zoffload.lab.remap", description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", type=Path, help="a scan experiment's run folder (OUT/runN)")
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a line")
+    p.add_argument("--edge-bridges", action="store_true",
+                   help="the mapper bridges the outages the robot bridged in the run itself (no handover)")
     a = p.parse_args(argv)
     failed = 0
     for folder in a.runs:
         try:
-            out = remap(folder)
+            out = remap(folder, a.edge_bridges)
         except (ValueError, OSError) as exc:
             print(f"{folder}: {exc}", file=sys.stderr)
             failed += 1
@@ -118,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{folder}: {out['scans']} scans, trajectory error {m(out['ate_rmse'])} (the run recorded "
               f"{m(out['recorded_ate_rmse'])}; reference: {out['reference']}; {out['after_gap']} scans "
               f"after a gap, {out['guessed']} of them from several guesses, kept "
-              f"{out['gap_guesses_kept'] or 'none'})")
+              f"{out['gap_guesses_kept'] or 'none'}; outages bridged by the {out['bridged_by']}, "
+              f"{out['handovers']} handed over)")
     return 1 if failed else 0
 
 

@@ -19,7 +19,12 @@ attach reply), so a version-1 sender is still understood. Version 3 added a fram
 reads (``Frame.reads``) and, in the answer to a frame whose sender reads 4, the edge's clock when
 the frame arrived (``Detections.arrival``: the robot times the link by it, robot/frames.py).
 Version 5 added a scan's prior (``Scan.prior``: the robot's own pose estimate while it bridged an
-overdue edge), which the robot sends only to an edge whose status says it reads 5. A
+overdue edge), which the robot sends only to an edge whose status says it reads 5. Version 6
+added a checkpoint's local map coded as a scan's q16d payload (``Checkpoint.packed``: a tenth of
+the size of float32, so a finer map for the same link) and the codec version an attaching robot
+reads (``Attach.reads``); the robot says 6 and sends a coded checkpoint only to an edge whose
+status says it reads 6, and an edge codes the checkpoints it sends a robot only when that
+robot's attach said 6 (``Checkpoint.plain`` turns a coded one back into float32). A
 message is sent as the lowest version that carries its fields away from their defaults, else as
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
@@ -27,7 +32,7 @@ detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival
 answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
 everything this one sends it (a passive listener of an older build, such as its viewer, refuses
 the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
-about the label: a message is read by its fields (each checked), whatever version between 1 and 5
+about the label: a message is read by its fields (each checked), whatever version between 1 and 6
 it says it is.
 """
 
@@ -43,7 +48,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5)
+READS = (1, 2, 3, 4, 5, 6)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -379,6 +384,42 @@ class Checkpoint(Message):
     delta: np.ndarray = _array(ArraySpec("<f8", (4, 4), values="rigid"))  # the last motion per scan period
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))  # coarse local map, world
     final: bool = False  # the edge is draining: this is its last checkpoint, the robot must move
+    # Version 6: the local map coded as a q16d scan payload (coding.py) instead of ``points`` (then
+    # empty): ``n_points`` points on a ``quant_step`` grid from ``origin``
+    quant_step: float = _num(0.0, lo=0.0, hi=1.0, since=6)
+    n_points: int = _num(-1, lo=-1, hi=1e12, since=6)
+    origin: np.ndarray | None = _array(ArraySpec("<f8", (3,)), optional=True, since=6)
+    packed: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True, since=6)
+
+    def __post_init__(self) -> None:
+        if self.packed is not None and (self.origin is None or self.quant_step <= 0 or self.n_points < 0
+                                        or len(self.points)):
+            raise WireError("checkpoint: a coded local map needs its origin, step and point count, "
+                            "and no float32 points beside it")
+
+    def cloud(self, limits: Limits = DEFAULT_LIMITS) -> np.ndarray:
+        """The local map as float32 (n, 3), decoded if coded; ``WireError`` if it cannot be."""
+        if self.packed is None:
+            return self.points
+        from zoffload.protocol.coding import CodingError, decode_q16d
+
+        if self.n_points > limits.max_map_points:
+            raise WireError(f"checkpoint of {self.n_points} points (at most {limits.max_map_points})")
+        assert self.origin is not None  # (__post_init__)
+        if not np.all(np.abs(self.origin) <= ORIGIN_MAX):
+            raise WireError(f"checkpoint origin {self.origin.tolist()} beyond {ORIGIN_MAX:g} m")
+        try:
+            return decode_q16d(self.packed, self.n_points, self.origin, self.quant_step)[0]
+        except CodingError as exc:
+            raise WireError(f"checkpoint: {exc}") from exc
+
+    def plain(self) -> Checkpoint:
+        """The same checkpoint with its local map as float32 points (for a peer that reads
+        version 5 or older)."""
+        if self.packed is None:
+            return self
+        return dataclasses.replace(self, points=self.cloud(), quant_step=0.0, n_points=-1, origin=None,
+                                   packed=None)
 
 
 @dataclass(frozen=True)
@@ -396,6 +437,9 @@ class Attach(Message):
     checkpoint: bytes = b""
     local_seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
     local_poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid", cap="max_map_points"))
+    # Version 6: the newest codec version the robot reads (5: not said); 6 or more, the edge may
+    # send it coded checkpoints
+    reads: int = _num(5, lo=1, hi=1_000, since=6)
 
     def __post_init__(self) -> None:
         if len(self.local_seqs) != len(self.local_poses):

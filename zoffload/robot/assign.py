@@ -30,6 +30,7 @@ class EdgeInfo:
     draining: bool = False  # leaving: takes no new robot
     refused_until: float = -math.inf  # it refused us: not asked again before this time
     reads: int = 3  # the newest codec version it said it reads (``wire.reads``; 3: not said)
+    heard: bool = False  # a status of it arrived
 
     @property
     def free(self) -> float:
@@ -89,7 +90,7 @@ class Assignment:
         if info is None:
             return False  # status of an edge whose token we do not hold: not live
         info.capacity, info.robots, info.draining = int(capacity), int(robots), draining
-        info.reads = reads
+        info.reads, info.heard = reads, True
         if draining and edge == self.edge:
             if self.state != ATTACHED:
                 self._drop()

@@ -43,6 +43,7 @@ from zoffload.runtime.session import undeclare
 log = logging.getLogger("zoffload.robot.fleet")
 
 DRAIN_WAIT = 1.0  # seconds a robot waits for its draining edge's final checkpoint before moving
+STATUS_WAIT = 2.0  # seconds a new edge may take to send its status before the robot asks it anyway
 OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
@@ -64,9 +65,14 @@ class Sensor:
 class FleetState:
     """The robot's fleet decisions, pure and thread-safe (one lock)."""
 
-    def __init__(self, robot: str, failover_after: float, refusal_backoff: float = 5.0) -> None:
+    def __init__(self, robot: str, failover_after: float, refusal_backoff: float = 5.0,
+                 status_wait: float = 0.0) -> None:
         self.robot = robot
         self.failover_after = failover_after
+        # An edge that appeared less than this long ago and whose status has not come yet is not
+        # asked yet: the attach depends on the codec version it reads (``attach_message``)
+        self.status_wait = status_wait
+        self._present_since: dict[str, float] = {}
         self.assignment = Assignment(robot, refusal_backoff=refusal_backoff)
         self.checkpoint: wire.Checkpoint | None = None  # the newest from the robot's edge
         self.moves: Counter[str] = Counter()  # why the robot left an edge
@@ -84,13 +90,15 @@ class FleetState:
         self._lock = threading.RLock()
 
     # What the network says
-    def edge_present(self, edge: str) -> None:
+    def edge_present(self, edge: str, now: float = -math.inf) -> None:
         with self._lock:
             self.assignment.edge_present(edge)
+            self._present_since.setdefault(edge, now)
 
     def edge_gone(self, edge: str, now: float) -> bool:
         with self._lock:
             was = self.assignment.state == ATTACHED
+            self._present_since.pop(edge, None)
             return self._moved("token", now, was) if self.assignment.edge_gone(edge) else False
 
     def edge_status(self, edge: str, values: dict[str, float], now: float) -> bool:
@@ -234,6 +242,10 @@ class FleetState:
             edge = a.next_candidate(now)
             if edge is None:
                 return None
+            info = a.edges.get(edge)
+            if (info is not None and not info.heard
+                    and now - self._present_since.get(edge, -math.inf) < self.status_wait):
+                return None  # its status (which version it reads) comes within a status period
             return edge, a.begin_attach(edge, now_ms)
 
     def attach_result(self, edge: str, epoch: int, reply: wire.AttachReply | None, now: float) -> str:
@@ -296,6 +308,18 @@ class FleetState:
                     "edge": a.edge if a.state == ATTACHED else "", "epoch": a.epoch}
 
 
+
+def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint | None, seqs: np.ndarray,
+                   poses: np.ndarray, edge_reads: int) -> wire.Attach:
+    """The attach for an edge that reads codec version ``edge_reads``: from 6 on, the robot says
+    it reads 6 (the edge then codes its checkpoints) and sends its checkpoint coded; to an older
+    edge, a version-5 attach with the checkpoint's map as float32 points."""
+    if cp is not None and edge_reads < 6:
+        cp = cp.plain()
+    return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
+                       rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
+                       local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5)
+
 class FleetLink:
     """``FleetState`` on Zenoh: subscriptions, the presence listener and the fleet thread."""
 
@@ -319,7 +343,7 @@ class FleetLink:
         presence.subscribe(self._on_presence)
         presence.subscribe_status(self._on_status)
         for edge in presence.edges:
-            self.state.edge_present(edge)
+            self.state.edge_present(edge, time.monotonic())
         self._subs = [
             session.declare_subscriber(self.keys.checkpoint(self.robot),
                                        self.drops.guard(self._on_checkpoint, "checkpoint")),
@@ -352,7 +376,7 @@ class FleetLink:
     # Zenoh callbacks: short, they only update the state and wake the fleet thread
     def _on_presence(self, edge: str, present: bool, _now: frozenset[str]) -> None:
         if present:
-            self.state.edge_present(edge)
+            self.state.edge_present(edge, time.monotonic())
         elif self.state.edge_gone(edge, time.monotonic()):
             log.warning("edge %s gone: moving", edge)
         self._wake.set()
@@ -366,6 +390,7 @@ class FleetLink:
     def _on_checkpoint(self, sample: zenoh.Sample) -> None:
         try:
             cp = wire.decode(sample.payload.to_bytes(), expect=wire.Checkpoint)
+            cp.cloud()  # a coded local map must decode now, not when an outage needs it
         except wire.WireError as exc:
             self.drops.drop("malformed_checkpoint", str(exc))
             return
@@ -392,10 +417,7 @@ class FleetLink:
     def _attach(self, edge: str, epoch: int) -> None:
         assert self._session is not None
         cp, seqs, poses = self.state.attach_payload(self.snapshot())
-        s = self.sensor
-        msg = wire.Attach(robot=self.robot, epoch=epoch, max_range=s.max_range, voxel_max=s.voxel_max,
-                          rate_hz=s.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
-                          local_seqs=seqs, local_poses=poses)
+        msg = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, self.state.reads(edge))
         reply: wire.AttachReply | None = None
         for r in self._session.get(self.keys.attach(self.robot, edge), payload=wire.encode(msg),
                                    timeout=self.attach_timeout):

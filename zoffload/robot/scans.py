@@ -41,7 +41,7 @@ from zoffload.policy.rate import LinkView
 from zoffload.policy.scale import ScalePolicy
 from zoffload.protocol import coding, wire
 from zoffload.protocol.keys import Keys
-from zoffload.robot.fleet import FleetLink, FleetState, Sensor
+from zoffload.robot.fleet import STATUS_WAIT, FleetLink, FleetState, Sensor
 from zoffload.robot.ledger import ScanLedger
 from zoffload.robot.localpose import PoseKeeper
 from zoffload.robot.odometry import LocalOdometry
@@ -128,7 +128,8 @@ class ScanStreamer:
         self._cpu = {"process_s": 0.0, "sensor_s": 0.0, "wall_s": 0.0}
         o = options
         self.fleet: FleetLink | None = None
-        self.fleet_state = FleetState(o.robot_id, o.failover_after) if o.attach else None
+        self.fleet_state = (FleetState(o.robot_id, o.failover_after, status_wait=STATUS_WAIT)
+                            if o.attach else None)
         self.odometry = (LocalOdometry(o.robot_id, source.max_range, o.local_voxel, o.local_threads,
                                        o.catch_up) if o.attach and o.local_odometry else None)
         self.poses = (PoseKeeper(self.odometry, self.fleet_state, self.ledger, self._lock, 1.0 / o.rate_hz,

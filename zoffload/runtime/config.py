@@ -145,7 +145,8 @@ class EdgeFleetSettings(_Strict):
     )
     checkpoint_resolution: float | None = Field(
         default=None, gt=0,
-        description="voxel size of a checkpoint's local map, in m (default: the mapper's voxel size)",
+        description="voxel size of a checkpoint's local map, in m (default: half the mapper's voxel size, "
+                    "KISS-ICP's own grid for a scan's points)",
     )
     final_checkpoint_resolution: float = Field(
         default=0.0, ge=0,

@@ -66,10 +66,11 @@ def scan(robot: str, seq: int, epoch: int = 0, edge: str = "", pts: np.ndarray |
 
 
 def attach(s: zenoh.Session, robot: str, epoch: int, edge: str = "e1", checkpoint: bytes = b"",
-           seqs: list[int] | None = None, poses: np.ndarray | None = None) -> wire.AttachReply:
+           seqs: list[int] | None = None, poses: np.ndarray | None = None, reads: int = 5
+           ) -> wire.AttachReply:
     msg = wire.Attach(robot=robot, epoch=epoch, max_range=SRC.max_range, voxel_max=0.07, rate_hz=10.0,
                       checkpoint=checkpoint, local_seqs=np.asarray(seqs or [], np.int64),
-                      local_poses=np.zeros((0, 4, 4)) if poses is None else poses)
+                      local_poses=np.zeros((0, 4, 4)) if poses is None else poses, reads=reads)
     replies = list(s.get(KEYS.attach(robot, edge), payload=wire.encode(msg), timeout=5))
     assert len(replies) == 1 and replies[0].ok is not None
     return wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.AttachReply)
@@ -300,3 +301,32 @@ def test_a_scan_with_the_robots_prior_after_an_outage_is_predicted_from_it(free_
         assert service.robots["r1"].counters["predicted_from_prior"] == 1
         assert service.robots["r2"].counters["predicted_from_prior"] == 0
         assert service.status()["predicted_from_prior"] == 1 and balanced(service)
+
+
+def test_a_robot_that_reads_6_gets_coded_checkpoints_and_a_corrupt_one_is_refused(free_port: int) -> None:
+    """Version 6: a robot whose attach says it reads 6 gets its checkpoints' local map coded (a
+    few bytes a point), one that does not (an older robot) float32 points. An attach whose coded
+    map does not decode is refused there, not when the map is needed."""
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=2),
+                             checkpoint_every=3)
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        got = {}
+        for robot, reads in (("r1", 6), ("r2", 5)):
+            cps = Inbox(s, KEYS.checkpoint(robot), wire.Checkpoint)
+            assert attach(s, robot, 1, reads=reads).accepted
+            pub = s.declare_publisher(KEYS.scan(robot))
+            for seq in range(4):
+                pub.put(scan(robot, seq, epoch=1, edge="e1"))
+            cps.wait(2)
+            got[robot] = cps.items[-1]
+        coded, plain = got["r1"], got["r2"]
+        assert coded.packed is not None and len(coded.points) == 0 and coded.n_points > 1000
+        assert plain.packed is None and len(plain.points) > 1000
+        # the same scans: the same map, a tenth of a 0.2 m cell apart at most
+        assert abs(coded.n_points - len(plain.points)) < 0.01 * len(plain.points)
+        assert len(wire.encode(coded)) < len(wire.encode(plain)) / 3
+        broken = dataclasses.replace(coded, robot="r3", packed=coded.packed[:100])
+        reply = attach(s, "r3", 1, checkpoint=wire.encode(broken), reads=6)
+        assert not reply.accepted and reply.detail.startswith("bad checkpoint: "), reply.detail
+        assert "r3" not in service.robots

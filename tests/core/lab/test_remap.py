@@ -6,10 +6,12 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from zoffload.lab.remap import main, remap
+from zoffload.sources.simulated import SimulatedSource
 
 pytest.importorskip("kiss_icp")
 
@@ -19,7 +21,7 @@ def _run(folder: Path, rows: list[dict[str, object]], recorded: float = 0.1) -> 
     (folder / "robot_config.yaml").write_text(yaml.safe_dump({"scans": "sim", "voxel_range": [0.01, 0.07],
                                                               "replay": "once", "sim_seed": 0}))
     with open(folder / "robot_scans.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["seq", "index", "voxel", "status", "pose_source"])
+        w = csv.DictWriter(f, fieldnames=["seq", "index", "voxel", "coding", "status", "pose_source"])
         w.writeheader()
         w.writerows(rows)
     (folder / "results.json").write_text(json.dumps({"trajectory_error": {"ate_rmse": recorded}}))
@@ -39,10 +41,38 @@ def test_a_run_is_registered_again_from_its_answered_scans(tmp_path: Path, capsy
     assert out["ate_rmse"] is not None and 0 < out["ate_rmse"] < 0.2, out
     assert out["after_gap"] == 1 and sum(out["gap_guesses_kept"].values()) == 1, out  # one gap
 
-    # the robot's own poses stood in for an outage: not replayable from the CSV, refused
+    # the robot's own poses stood in for an outage: without robot_poses.npz nothing to hand over
     rows[30]["pose_source"] = "local"
     with pytest.raises(ValueError, match="local odometry"):
         remap(_run(tmp_path / "run2", rows))
     assert main([str(tmp_path / "run2"), str(tmp_path / "nothing")]) == 1
     err = capsys.readouterr().err
     assert "local odometry" in err and "no robot_config.yaml" in err
+
+
+def test_an_outage_the_robot_bridged_is_handed_over_from_its_own_poses(tmp_path: Path) -> None:
+    """Scans 20-27 were registered by the robot's odometry in an outage (``pose_source`` local):
+    the replay predicts scan 28 from the robot's newest pose, as the edge did from its prior. A
+    robot pose turned 20 degrees shows in the replay's trajectory; ``edge_bridges`` ignores it."""
+    src = SimulatedSource()
+    rows: list[dict[str, object]] = []
+    for i in range(45):
+        out = 20 <= i < 28
+        rows.append({"seq": i, "index": i, "voxel": 0.05, "coding": "q16d",
+                     "status": "local" if out else "acked", "pose_source": "local" if out else "edge"})
+    truth = [src.read(i).gt_pose for i in range(45)]
+    poses = np.array([np.linalg.inv(truth[0]) @ t for t in truth])  # the robot's: the edge's frame
+    results = {}
+    for name, yaw in (("right", 0.0), ("off", np.radians(20))):
+        folder = _run(tmp_path / name, rows)
+        own = poses.copy()
+        c, s = np.cos(yaw), np.sin(yaw)
+        own[27, :3, :3] = own[27, :3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        np.savez(folder / "robot_poses.npz", acked_seqs=np.arange(45), acked_poses=own,
+                 gt_seqs=np.arange(45), gt_poses=np.array(truth))
+        results[name] = remap(folder)
+        assert results[name]["handovers"] == 1 and results[name]["bridged_by"] == "robot"
+    assert results["right"]["ate_rmse"] < 0.2, results
+    assert results["off"]["ate_rmse"] > results["right"]["ate_rmse"] + 0.3, results
+    alone = remap(tmp_path / "off", edge_bridges=True)
+    assert alone["handovers"] == 0 and alone["bridged_by"] == "edge" and alone["ate_rmse"] < 0.5, alone

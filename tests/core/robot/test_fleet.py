@@ -3,10 +3,21 @@ what the next attach carries, the failover timings."""
 
 from __future__ import annotations
 
+import msgpack
 import numpy as np
+import pytest
 
+from zoffload.mapping.checkpoint import take_checkpoint
 from zoffload.protocol import wire
-from zoffload.robot.fleet import DRAIN_WAIT, OWN_CHECKPOINT_AFTER, RETRY_MIN, STAY_SILENT, FleetState
+from zoffload.robot.fleet import (
+    DRAIN_WAIT,
+    OWN_CHECKPOINT_AFTER,
+    RETRY_MIN,
+    STAY_SILENT,
+    FleetState,
+    Sensor,
+    attach_message,
+)
 from zoffload.robot.odometry import Snapshot
 
 
@@ -119,6 +130,53 @@ def test_the_attach_carries_the_edges_checkpoint_unless_the_robots_own_is_much_n
     assert cp is not None and cp.edge == edge and list(s) == list(range(25, 31))  # the edge's is fresher
     cp, s, _ = f.attach_payload(None)
     assert cp is not None and cp.seq == 20 and len(s) == 0
+
+
+def test_an_edge_that_reads_5_gets_a_version_5_attach_with_a_float32_map() -> None:
+    """The robot's checkpoint is coded (version 6). An edge whose status said it reads 6 gets it
+    so, with the robot saying it reads 6 (the edge then codes its checkpoints too); an older edge
+    gets the same map as float32 points in an attach that version 5 reads."""
+    pytest.importorskip("kiss_icp")
+    from zoffload.mapping.mapper import RobotMapper
+    from zoffload.sources.simulated import SimulatedSource
+
+    src = SimulatedSource()
+    m = RobotMapper(voxel_size=0.8, max_range=src.max_range)
+    for i in range(3):
+        m.register(i, src.read(i).points)
+    cp = take_checkpoint(m.odometry, "r1", "", 0, 2, 0.0, 0.8)
+    assert cp.packed is not None
+    sensor = Sensor(40.0, 0.07, 10.0)
+    seqs, poses = np.arange(3, 5, dtype=np.int64), np.repeat(np.eye(4)[None], 2, 0)
+    new = wire.decode(wire.encode(attach_message("r1", 7, sensor, cp, seqs, poses, 6)), expect=wire.Attach)
+    assert new.reads == 6
+    assert wire.decode(new.checkpoint, expect=wire.Checkpoint).packed is not None
+    for edge_reads in (3, 5):
+        data = wire.encode(attach_message("r1", 7, sensor, cp, seqs, poses, edge_reads))
+        old = msgpack.unpackb(data)
+        assert old["v"] <= 5 and "reads" not in old  # what a version-5 edge decodes
+        inner = msgpack.unpackb(old["checkpoint"])
+        assert inner["v"] <= 5 and "packed" not in inner
+        got = wire.decode(old["checkpoint"], expect=wire.Checkpoint)
+        np.testing.assert_array_equal(got.points, cp.cloud())
+    assert attach_message("r1", 7, sensor, None, seqs, poses, 5).checkpoint == b""
+
+
+def test_a_new_edge_is_asked_once_its_status_says_which_version_it_reads() -> None:
+    """The attach depends on the version the edge reads, which its status says: an edge that just
+    appeared is asked once its status came, or after ``status_wait`` without one (an edge too old
+    to say it)."""
+    f = FleetState("r1", failover_after=0.5, status_wait=2.0)
+    f.edge_present("e1", 10.0)
+    assert f.next_attach(10.5, 10_500) is None
+    f.edge_status("e1", {"capacity": 4, "robots": 0, "wire.reads": 6.0}, 10.6)
+    ask = f.next_attach(10.6, 10_600)
+    assert ask is not None and ask[0] == "e1" and f.reads("e1") == 6
+    g = FleetState("r1", failover_after=0.5, status_wait=2.0)
+    g.edge_present("old", 10.0)  # says nothing
+    assert g.next_attach(11.9, 11_900) is None
+    ask = g.next_attach(12.1, 12_100)
+    assert ask is not None and ask[0] == "old" and g.reads("old") == 3
 
 
 def test_unanswered_or_refused_attaches_back_off() -> None:

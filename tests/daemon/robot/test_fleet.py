@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,20 @@ class FakeEdge:
         self.token = self.session.liveliness().declare_token(KEYS.edge_alive(edge))
         self.queryable = self.session.declare_queryable(KEYS.all_attaches(edge), self._on_attach)
         self.sub = self.session.declare_subscriber(KEYS.all_scans(), self._on_scan)
+        # As a real edge, a status at once and every half second: the robot asks an edge once it
+        # knows which codec version it reads (or after robot/fleet.py's STATUS_WAIT without one)
+        self._status = threading.Thread(target=self._say_status, daemon=True)
+        self._status.start()
+
+    def _say_status(self) -> None:
+        while self.acking:
+            values = {"capacity": 4.0, "robots": 1.0, wire.READS_KEY: float(max(wire.READS))}
+            status = wire.Status(source="edge", id=self.edge, stamp=time.time(), values=values)
+            try:
+                self.session.put(KEYS.edge_status(self.edge), wire.encode(status))
+            except Exception:  # the session closed under us
+                return
+            time.sleep(0.5)
 
     def _on_attach(self, query: zenoh.Query) -> None:
         assert query.payload is not None
@@ -84,6 +99,8 @@ class FakeEdge:
         self.token.undeclare()
 
     def close(self) -> None:
+        self.acking = False
+        self._status.join(2)
         self.sub.undeclare()
         self.queryable.undeclare()
         self.session.close()
@@ -135,7 +152,8 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
     # The attach to B carried the robot's own checkpoint (far newer than A's) and the poses after it
     att = b.attaches[0]
     cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
-    assert cp.edge == "" and cp.robot == "robot1" and cp.seq > last_a and len(cp.points) > 0
+    assert cp.edge == "" and cp.robot == "robot1" and cp.seq > last_a and len(cp.cloud()) > 0
+    assert att.reads == 6 and cp.packed is not None  # edge B said it reads 6: coded (version 6)
     assert all(s > cp.seq for s in att.local_seqs) and list(att.local_seqs) == sorted(att.local_seqs)
     assert att.epoch > a.epoch and {s.epoch for s in b.scans} == {att.epoch}
     m = robot.metrics()
