@@ -13,7 +13,7 @@ robot's to decode it (median ms, thread time).
 
 Kinds: the map at the mapper's voxel in float32 (the default before), at half the voxel coded as
 q16d (the default: ``checkpoint.RESOLUTION``, version 6), and the whole local map coded (what a
-drain's final checkpoint carries).
+drain's final checkpoint carries, in float32: coded it took the draining edge too long).
 Run: python -m benchmarks.bench_checkpoint [--every 25] [--scans 20]
 """
 
@@ -34,7 +34,7 @@ from zoffload.robot.odometry import local_voxel_size
 from zoffload.sources.simulated import SimulatedSource
 
 KINDS = (("voxel, float32 (before)", 1.0, False), ("half voxel, q16d (default)", 0.5, True),
-         ("whole map, q16d (final)", 0.0, True))
+         ("whole map, q16d", 0.0, True))
 
 
 def heading_deg(t: np.ndarray) -> float:

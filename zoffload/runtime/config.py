@@ -146,7 +146,8 @@ class EdgeFleetSettings(_Strict):
     checkpoint_resolution: float | None = Field(
         default=None, gt=0,
         description="voxel size of a checkpoint's local map, in m (default: half the mapper's voxel size, "
-                    "KISS-ICP's own grid for a scan's points)",
+                    "KISS-ICP's own grid for a scan's points, coded; the mapper's voxel size in float32 "
+                    "for a robot that reads codec version 5 or older)",
     )
     final_checkpoint_resolution: float = Field(
         default=0.0, ge=0,

@@ -31,9 +31,10 @@ def test_a_seeded_mapper_continues_the_trajectory() -> None:
     plain = wire.decode(wire.encode(cp.plain()), expect=wire.Checkpoint)  # for a version-5 peer
     assert plain.packed is None and np.array_equal(plain.points, points)
     # within half a quantisation step of the map it was taken from
-    assert np.abs(np.sort(points, axis=0) - np.sort(take_checkpoint(a.odometry, "r1", "e1", 3, 24, 2.4,
-                                                                    coded=False).points, axis=0)).max() \
-        <= cp.quant_step / 2 + 1e-4
+    same = take_checkpoint(a.odometry, "r1", "e1", 3, 24, 2.4, resolution=0.25, coded=False)
+    assert np.abs(np.sort(points, axis=0) - np.sort(same.points, axis=0)).max() <= cp.quant_step / 2 + 1e-4
+    # float32 without a resolution: the mapper's voxel, as before version 6
+    assert len(take_checkpoint(a.odometry, "r1", "e1", 3, 24, 2.4, coded=False).points) < len(points) / 2
     b, fresh = RobotMapper(voxel_size=cp.voxel_size, max_range=cp.max_range), \
         RobotMapper(voxel_size=0.5, max_range=src.max_range)
     assert config_matches(b.odometry, cp)
