@@ -8,8 +8,8 @@ robot's at 0.8 m), at every ``--every``-th scan: the edge's state after that sca
 checkpoint of each kind, a fresh robot odometry seeded from it registers the next ``--scans`` raw
 scans, and its motion over them is compared with the ground truth's (translation in cm, heading
 in degrees; mean and 90th percentile over the windows). Beside it: the checkpoint's points, its
-bytes on the wire, the downlink that takes at one a second, and the edge's CPU to take it and the
-robot's to decode it (median ms, thread time).
+bytes on the wire, the downlink that takes at one a second, the edge's CPU to take it, the
+robot's to decode it and the seeded odometry's per scan of the bridge (median ms, thread time).
 
 Kinds: the map at the mapper's voxel in float32 (the default before), at half the voxel coded as
 q16d (the default: ``checkpoint.RESOLUTION``, version 6), and the whole local map coded (what a
@@ -75,20 +75,22 @@ def main(argv: list[str] | None = None) -> None:
             cfg.registration.max_num_threads = 1
             odo = KissICP(cfg)
             seed(odo, got)
+            t0 = time.thread_time()
             for j in range(i + 1, i + 1 + a.scans):
                 odo.register_frame(scans[j], np.empty(0))
+            bridged = (time.thread_time() - t0) / a.scans
             moved = np.linalg.inv(np.asarray(got.pose)) @ np.asarray(odo.last_pose)
             err = np.linalg.inv(truth) @ moved
             r = rows[name]
             for key, value in (("cm", float(np.linalg.norm(err[:3, 3])) * 100), ("deg", heading_deg(err)),
                                ("points", len(points)), ("bytes", len(data)), ("take", taken * 1e3),
-                               ("decode", decoded * 1e3)):
+                               ("decode", decoded * 1e3), ("register", bridged * 1e3)):
                 r.setdefault(key, []).append(value)
     windows = len(next(iter(rows.values()))["cm"])
     print(f"{windows} windows of {a.scans} scans; edge voxel {edge_voxel:g} m, "
           f"robot odometry {robot_voxel:g} m")
     print(f"{'checkpoint':28s} {'points':>8s} {'kB':>6s} {'Mbps at 1/s':>11s} {'take ms':>8s} "
-          f"{'decode ms':>9s} {'error cm (p90)':>15s} {'heading deg (p90)':>18s}")
+          f"{'decode ms':>9s} {'robot ms/scan':>13s} {'error cm (p90)':>15s} {'heading deg (p90)':>18s}")
     base = None
     for name, _, _ in KINDS:
         r = rows[name]
@@ -97,6 +99,7 @@ def main(argv: list[str] | None = None) -> None:
         base = base or deg
         print(f"{name:28s} {statistics.median(r['points']):8,.0f} {kb:6.0f} {kb * 8 / 1e3:11.2f} "
               f"{statistics.median(r['take']):8.1f} {statistics.median(r['decode']):9.1f} "
+              f"{statistics.median(r['register']):13.1f} "
               f"{statistics.fmean(r['cm']):7.2f} ({np.percentile(r['cm'], 90):5.2f}) "
               f"{deg:9.3f} ({np.percentile(r['deg'], 90):5.3f})  heading x{deg / base:.2f}")
 
