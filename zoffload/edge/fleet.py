@@ -55,8 +55,8 @@ class Route:
 
 def check_attach(attach: wire.Attach, robot: str, limits: wire.Limits = wire.DEFAULT_LIMITS
                  ) -> tuple[wire.Checkpoint | None, str]:
-    """The attach's checkpoint (None: a fresh start) and "" when it is usable, else the reason to
-    refuse it (``bad checkpoint: ...``)."""
+    """The attach's checkpoint (None: a fresh start; a coded map decoded to float32 points) and ""
+    when it is usable, else the reason to refuse it (``bad checkpoint: ...``)."""
     cp: wire.Checkpoint | None = None
     if attach.checkpoint:
         try:
@@ -68,7 +68,7 @@ def check_attach(attach: wire.Attach, robot: str, limits: wire.Limits = wire.DEF
         if not _rigid(cp.pose[None]) or not _rigid(cp.delta[None]):
             return None, "bad checkpoint: pose or delta is not a rigid transform"
         try:
-            cp.cloud(limits)  # a coded local map must decode (seeding it comes later)
+            cp = cp.plain(limits)  # decoded once, here: a coded map that does not decode is refused
         except wire.WireError as exc:
             return None, f"bad checkpoint: {str(exc)[:200]}"
     seqs = np.asarray(attach.local_seqs, np.int64)

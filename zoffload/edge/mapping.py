@@ -436,9 +436,8 @@ class MappingService:
             self._continue(rs)
             self._send_checkpoint(rs, entry.epoch, final=True)
         elif rs.pending is not None and rs.pending.checkpoint is not None and self._session is not None:
+            # (float32, as every final: check_attach decoded the attach's coded map)
             cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch, final=True)
-            if entry.reads < 6:
-                cp = cp.plain()
             self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
                               congestion_control=zenoh.CongestionControl.BLOCK)
             self._count(rs, "final_checkpoints")

@@ -136,10 +136,10 @@ def _hand_over(mapper: Any, robot: dict[int, np.ndarray], local: set[int], last:
     if not bridged or last not in robot:
         return False
     q = max(bridged)
-    own = dict(zip(*mapper.trajectory(), strict=True))
-    if last not in own:
+    seqs, poses = mapper.trajectory()
+    if not len(seqs) or seqs[-1] != last:
         return False
-    frame = own[last] @ np.linalg.inv(robot[last])  # the run's world into the replay's
+    frame = poses[-1] @ np.linalg.inv(robot[last])  # the run's world into the replay's
     span = sorted(s for s in robot if q - MOTION_SPAN <= s <= q)
     delta = motion_per_scan(np.array(span), np.array([robot[s] for s in span]))
     if delta is None:

@@ -31,7 +31,7 @@ from zoffload.protocol import wire
 from zoffload.protocol.coding import encode_q16d, quant_step
 
 RESOLUTION = 0.5  # of the mapper's voxel: a checkpoint's local map by default (module docstring)
-STEP = 0.1  # of the map's resolution: its quantisation step when coded (the whole map: of the voxel)
+STEP = 0.1  # of the map's resolution: its quantisation step when coded (the whole map: of RESOLUTION)
 
 
 def take_checkpoint(odometry: Any, robot: str, edge: str, epoch: int, seq: int, stamp: float,

@@ -413,12 +413,12 @@ class Checkpoint(Message):
         except CodingError as exc:
             raise WireError(f"checkpoint: {exc}") from exc
 
-    def plain(self) -> Checkpoint:
+    def plain(self, limits: Limits = DEFAULT_LIMITS) -> Checkpoint:
         """The same checkpoint with its local map as float32 points (for a peer that reads
-        version 5 or older)."""
+        version 5 or older); ``WireError`` if the coded map does not decode."""
         if self.packed is None:
             return self
-        return dataclasses.replace(self, points=self.cloud(), quant_step=0.0, n_points=-1, origin=None,
+        return dataclasses.replace(self, points=self.cloud(limits), quant_step=0.0, n_points=-1, origin=None,
                                    packed=None)
 
 

@@ -31,6 +31,7 @@ class EdgeInfo:
     refused_until: float = -math.inf  # it refused us: not asked again before this time
     reads: int = 3  # the newest codec version it said it reads (``wire.reads``; 3: not said)
     heard: bool = False  # a status of it arrived
+    present_since: float = -math.inf  # when its token appeared (robot monotonic clock)
 
     @property
     def free(self) -> float:
@@ -71,8 +72,8 @@ class Assignment:
     failovers: int = 0
 
     # What the network says
-    def edge_present(self, edge: str) -> None:
-        self.edges.setdefault(edge, EdgeInfo(edge))
+    def edge_present(self, edge: str, now: float = -math.inf) -> None:
+        self.edges.setdefault(edge, EdgeInfo(edge, present_since=now))
 
     def edge_gone(self, edge: str) -> bool:
         """An edge's token went; True when it was ours (the robot must move)."""

@@ -72,7 +72,6 @@ class FleetState:
         # An edge that appeared less than this long ago and whose status has not come yet is not
         # asked yet: the attach depends on the codec version it reads (``attach_message``)
         self.status_wait = status_wait
-        self._present_since: dict[str, float] = {}
         self.assignment = Assignment(robot, refusal_backoff=refusal_backoff)
         self.checkpoint: wire.Checkpoint | None = None  # the newest from the robot's edge
         self.moves: Counter[str] = Counter()  # why the robot left an edge
@@ -92,13 +91,11 @@ class FleetState:
     # What the network says
     def edge_present(self, edge: str, now: float = -math.inf) -> None:
         with self._lock:
-            self.assignment.edge_present(edge)
-            self._present_since.setdefault(edge, now)
+            self.assignment.edge_present(edge, now)
 
     def edge_gone(self, edge: str, now: float) -> bool:
         with self._lock:
             was = self.assignment.state == ATTACHED
-            self._present_since.pop(edge, None)
             return self._moved("token", now, was) if self.assignment.edge_gone(edge) else False
 
     def edge_status(self, edge: str, values: dict[str, float], now: float) -> bool:
@@ -243,8 +240,7 @@ class FleetState:
             if edge is None:
                 return None
             info = a.edges.get(edge)
-            if (info is not None and not info.heard
-                    and now - self._present_since.get(edge, -math.inf) < self.status_wait):
+            if info is not None and not info.heard and now - info.present_since < self.status_wait:
                 return None  # its status (which version it reads) comes within a status period
             return edge, a.begin_attach(edge, now_ms)
 
@@ -308,7 +304,6 @@ class FleetState:
                     "edge": a.edge if a.state == ATTACHED else "", "epoch": a.epoch}
 
 
-
 def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint | None, seqs: np.ndarray,
                    poses: np.ndarray, edge_reads: int) -> wire.Attach:
     """The attach for an edge that reads codec version ``edge_reads``: from 6 on, the robot says
@@ -319,6 +314,7 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
     return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
                        rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
                        local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5)
+
 
 class FleetLink:
     """``FleetState`` on Zenoh: subscriptions, the presence listener and the fleet thread."""
