@@ -220,8 +220,13 @@ class MappingService:
             rs.counters["received"] += 1
             self.counters["received"] += 1
             rs.queue.append(Queued(scan, arrival, interarrival))
-            while len(rs.queue) > self.queue_len:
-                overflow.append(rs.queue.popleft())
+            rs.kept.append(scan.seq)
+            while len(rs.queue) > self.queue_len:  # thinned, not cut (RobotSession.victim)
+                i = rs.victim()
+                overflow.append(rs.queue[i])
+                del rs.queue[i]
+                if overflow[-1].scan.seq in rs.kept:
+                    rs.kept.remove(overflow[-1].scan.seq)
             if not rs.scheduled:
                 rs.scheduled = True
                 self._ready.append(rs)

@@ -49,6 +49,8 @@ class ScanLedger:
     window_drops: int = 0  # scans held back because the window of unanswered ones was full
     edge_times: deque[float] = field(default_factory=lambda: deque(maxlen=20))  # queue + registration [s]
     _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
+    route: tuple[str, int] | None = None  # the (edge, epoch) scans go to now (``on_route``)
+    route_since: float = -math.inf  # robot clock of the first scan under it
 
     @property
     def records(self) -> dict[int, dict[str, Any]]:
@@ -187,6 +189,31 @@ class ScanLedger:
     @property
     def in_flight(self) -> int:
         return len(self.pending)
+
+    # The current route: what the window, the stall rule and the fleet's silence clock look at
+    def on_route(self, route: tuple[str, int], now: float) -> None:
+        """Scans go to ``route`` (edge, epoch) from now on (a move: a new one)."""
+        if route != self.route:
+            self.route, self.route_since = route, now
+
+    @property
+    def in_flight_here(self) -> int:
+        """Unanswered scans sent under the current route. The scans still in flight to an edge
+        the robot left (dead, silent, draining) are not on the new edge's path: counted, they
+        filled its window and made its silence for up to ``ack_timeout`` after a move, so the
+        first scans to the new edge were held back as a stall, with no pose from either side
+        (3-4 scans after a kill on the fleet's emulated links)."""
+        if self.route is None:
+            return len(self.pending)
+        recs = self.records
+        return sum(1 for s in self.pending if _route(recs.get(s, {})) == self.route)
+
+    def since_answer(self, now: float) -> float:
+        """Seconds since the newest ack, or since the current route began if that is later (a new
+        edge has not had the chance to answer before its first scan); 0 before any ack."""
+        if not math.isfinite(self.last_ack_at):
+            return 0.0
+        return now - max(self.last_ack_at, self.route_since)
 
     def window(self, base: int, period: float) -> int:
         """Unanswered scans allowed before the next is held back: ``base`` (0: no limit) plus the

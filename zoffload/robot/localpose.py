@@ -42,10 +42,12 @@ import numpy as np
 
 from zoffload.robot.fleet import FleetState
 from zoffload.robot.ledger import ScanLedger
-from zoffload.robot.odometry import MAX_GAP, LocalOdometry
+from zoffload.robot.odometry import MAX_GAP, LocalOdometry, Snapshot
 from zoffload.robot.sensor import Reading
 
 log = logging.getLogger("zoffload.robot.localpose")
+
+HANDOVER_POSES = 64  # the robot's newest scan poses an attach may hand over (those after its checkpoint)
 
 
 class PoseKeeper:
@@ -199,6 +201,30 @@ class PoseKeeper:
                     self.ledger.records[s]["cpu_local_ms"] = cpu
         log.info("mapping locally from scan %d, %s (checkpoint %s, %d scans caught up)", seq, why,
                  f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
+
+    def handover(self) -> Snapshot:
+        """What the next attach hands over (fleet thread): the local odometry's newest checkpoint
+        and the pose of each of the robot's newest scans (at most ``HANDOVER_POSES``): the edge's
+        where one answered, else the local odometry's, its period's poses included. The attach
+        sends those after the checkpoint it carries (``FleetState.attach_payload``); the next
+        edge's trajectory goes on from the newest of them at the robot's own motion. It handed
+        over the local odometry's poses only: after an edge was killed (a move at once, nothing
+        bridged) the next edge got the last checkpoint and no pose after it, and predicted the
+        robot's first scan by stretching the checkpoint's motion over up to ten scans; in a turn
+        that put it 9 degrees off and the trajectory 2 m off by the end (a fleet run with five
+        kills: ATE 1.05 m against 0.49)."""
+        odo = self.odometry
+        none = Snapshot(None, np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        snap = odo.snapshot() if odo is not None else none
+        merged = {int(s): p for s, p in zip(snap.seqs, snap.poses, strict=True)}
+        with self.lock:
+            poses = self.ledger.poses
+            for seq in heapq.nlargest(HANDOVER_POSES, poses):
+                if np.isfinite(poses[seq]).all():  # an edge that does not map acks with NaN
+                    merged[seq] = np.array(poses[seq])
+        seqs = sorted(merged)
+        return Snapshot(snap.checkpoint, np.array(seqs, np.int64),
+                        np.array([merged[s] for s in seqs], np.float64).reshape(-1, 4, 4))
 
     def _newest_poses(self, after: int, n: int = 2) -> list[tuple[int, np.ndarray]]:
         """The newest ``n`` poses the robot has for scans after ``after``, ascending: the edge's

@@ -157,10 +157,10 @@ class ScanStreamer:
             self.keys.scan(robot), congestion_control=zenoh.CongestionControl.BLOCK_FIRST)
         self.sender.start()
         if self.fleet_state is not None:
-            odo = self.odometry
+            assert self.poses is not None
             self.fleet = FleetLink(self.keys, self.fleet_state,
                                    Sensor(self.source.max_range, self.opts.voxel_range[1], self.opts.rate_hz),
-                                   self.opts.attach_timeout, odo.snapshot if odo is not None else None)
+                                   self.opts.attach_timeout, self.poses.handover)
             self.fleet.start(session, presence)
         log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
                  self.policy.name, self.opts.coding)
@@ -196,7 +196,7 @@ class ScanStreamer:
         with self._lock:
             bucket = self.ledger.on_ack(ack, recv)
             refused = self.ledger.counters["edge_refused"]
-            in_flight = self.ledger.in_flight
+            in_flight = self.ledger.in_flight_here
             if bucket == "acked" and self.poses is not None:
                 self.poses.edge_pose(ack.seq, np.array(ack.pose))
         if fleet is not None and bucket != "unknown" and fleet.on_ack(ack.edge, ack.epoch, ack.status, recv,
@@ -264,9 +264,10 @@ class ScanStreamer:
         local_s = time.thread_time() - l0  # local odometry's (and its catch-up's), booked apart
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
+            self.ledger.on_route(target, time.monotonic())
             window = (self.ledger.window(self.opts.max_in_flight, self._period())
                       if self.opts.window_edge_time else self.opts.max_in_flight)
-            full = bool(window) and self.ledger.in_flight >= window
+            full = bool(window) and self.ledger.in_flight_here >= window
         if full:
             # in a stall the policy skips it on purpose (announced); else the window drops it
             stall = self.sizer.held_back(self._link_view)
@@ -277,7 +278,7 @@ class ScanStreamer:
                     self._skipped.append(reading.seq)
                     return bridged
                 base = self.opts.max_in_flight
-                record["reason"] = (f"window full: {self.ledger.in_flight} unanswered "
+                record["reason"] = (f"window full: {self.ledger.in_flight_here} unanswered "
                                     f"({base} + {window - base} at the edge)")
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 self.ledger.window_drops += 1
@@ -371,8 +372,8 @@ class ScanStreamer:
                 acks=led.interarrivals_seen,
                 last_slot=led.last_slot,
                 recent=tuple(led.recent),
-                since_ack=now - led.last_ack_at if math.isfinite(led.last_ack_at) else 0.0,
-                in_flight=led.in_flight,
+                since_ack=led.since_answer(now),
+                in_flight=led.in_flight_here,
                 window_drops=led.window_drops,
                 raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
@@ -394,7 +395,7 @@ class ScanStreamer:
                 with self._lock:
                     expired = self.ledger.expire(time.monotonic(), o.ack_timeout)
                     self._book_overwrites(sensor)
-                    idle = expired and self.ledger.in_flight == 0
+                    idle = expired and self.ledger.in_flight_here == 0
                 if idle and self.fleet_state is not None:
                     self.fleet_state.no_scans_in_flight()
                 if reading is None:

@@ -90,7 +90,10 @@ class MapperSettings(_Strict):
     map_resolution: float = Field(
         default=0.1, gt=0, description="global map: one point per voxel of this size, in m"
     )
-    queue: int = Field(default=2, ge=1, description="scans waiting per robot before the oldest is dropped")
+    queue: int = Field(
+        default=2, ge=1, description="scans waiting per robot before one is dropped (the oldest, spared once "
+        "when its neighbour is gone)"
+    )
     workers: int | None = Field(
         default=None, ge=1, description="mapping threads serving every robot's queue; unset: one per core",
     )

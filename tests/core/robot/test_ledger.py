@@ -165,3 +165,32 @@ def test_only_scans_the_edge_registered_count_for_the_window() -> None:
     assert led.window(3, 0.1) == 3
     acked_with(led, [(math.nan, 0.1)] * 10)  # no queue time reported
     assert led.window(3, 0.1) == 3
+
+
+def test_after_a_move_the_old_edges_unanswered_scans_neither_fill_the_window_nor_make_a_silence() -> None:
+    led = ScanLedger()
+    led.on_route(("edgeA", 1), now=10.0)
+    for seq in range(3):
+        led.produced()
+        led.handed_off(seq, {"edge": "edgeA", "epoch": 1})
+        led.published(seq, send_stamp=10.0 + 0.1 * seq, record={})
+    assert led.on_ack(ack(0, 10.0), recv_stamp=10.05) == "acked"
+    assert led.in_flight_here == 2 and led.since_answer(11.05) == pytest.approx(1.0)
+    # edgeA goes silent; the robot moves to edgeB with A's two scans still unanswered
+    led.on_route(("edgeB", 2), now=11.2)
+    assert led.in_flight == 2 and led.in_flight_here == 0  # (the old code counted 2)
+    assert led.since_answer(11.3) == pytest.approx(0.1)  # not 1.25 s since A's last ack
+    led.produced()
+    led.handed_off(3, {"edge": "edgeB", "epoch": 2})
+    led.published(3, send_stamp=11.3, record={})
+    assert led.in_flight_here == 1
+    led.on_route(("edgeB", 2), now=12.0)  # the same route again: its clock goes on
+    assert led.since_answer(12.0) == pytest.approx(0.8)
+    # A's scans still expire and stay in the balance
+    assert led.expire(now=12.5, timeout=1.0) == 3 and led.in_flight_here == 0 and led.balanced()
+
+
+def test_before_any_ack_there_is_no_silence() -> None:
+    led = ScanLedger()
+    led.on_route(("edgeA", 1), now=10.0)
+    assert led.since_answer(30.0) == 0.0

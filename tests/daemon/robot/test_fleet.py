@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ import zenoh
 from tests.helpers import KEYS, connect_to, listen_on, wait_for
 from zoffload.protocol import wire
 from zoffload.robot.fleet import OWN_CHECKPOINT_AFTER
-from zoffload.robot.scans import scan_streamer
+from zoffload.robot.scans import ScanStreamer, scan_streamer
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
@@ -27,15 +29,17 @@ pytest.importorskip("kiss_icp")
 class FakeEdge:
     """A stand-in edge: accepts every attach, acks the scans sent to it under that epoch (the pose:
     1 cm further along x per scan) and, with ``stale``, first sends each ack again under another
-    epoch and another edge id, which the robot must ignore. A checkpoint after every 5th scan."""
+    epoch and another edge id, which the robot must ignore. A checkpoint after every 5th scan
+    (the first ``checkpoints`` of them)."""
 
-    def __init__(self, port: int, edge: str, stale: bool = False) -> None:
-        self.edge, self.stale = edge, stale
+    def __init__(self, port: int, edge: str, stale: bool = False, checkpoints: int = 1 << 30) -> None:
+        self.edge, self.stale, self.checkpoints = edge, stale, checkpoints
         self.session = open_session(connect_to(port))
         self.attaches: list[wire.Attach] = []
         self.scans: list[wire.Scan] = []
         self.epoch = 0
         self.acking = True
+        self.muted = False  # token and status stay, no scan is answered (a hung edge)
         self._lock = threading.Lock()
         self.token = self.session.liveliness().declare_token(KEYS.edge_alive(edge))
         self.queryable = self.session.declare_queryable(KEYS.all_attaches(edge), self._on_attach)
@@ -66,7 +70,7 @@ class FakeEdge:
 
     def _on_scan(self, sample: zenoh.Sample) -> None:
         scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
-        if scan.edge != self.edge or not self.acking:
+        if scan.edge != self.edge or not self.acking or self.muted:
             return
         with self._lock:
             self.scans.append(scan)
@@ -86,7 +90,8 @@ class FakeEdge:
             self.session.put(key, ack("edge9", scan.epoch))
         if mine:
             self.session.put(key, ack(self.edge, scan.epoch))
-            if scan.seq % 5 == 0:
+            if scan.seq % 5 == 0 and self.checkpoints > 0:
+                self.checkpoints -= 1
                 cp = wire.Checkpoint(robot=scan.robot, edge=self.edge, epoch=scan.epoch, seq=scan.seq,
                                      stamp=scan.capture_stamp, voxel_size=0.4, max_range=40.0, min_range=0.0,
                                      max_points_per_voxel=20, pose=pose, delta=np.eye(4),
@@ -106,20 +111,46 @@ class FakeEdge:
         self.session.close()
 
 
-def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port: int,
-                                                                       tmp_path: Path) -> None:
-    hub = open_session(listen_on(free_port))
+@contextmanager
+def fleet_hub(port: int) -> Iterator[tuple[list[FakeEdge], StopSignal]]:
+    """A listening hub for the fake edges (added to the yielded list) and the robot; on exit the
+    robot is told to stop and every edge and the hub are closed."""
+    hub = open_session(listen_on(port))
     edges: list[FakeEdge] = []
     stop = StopSignal()
     try:
+        yield edges, stop
+    finally:
+        stop.set()
+        for e in edges:
+            e.close()
+        hub.close()
+
+
+def start_robot(port: int, out: Path, stop: StopSignal, policy: str = "fixed"
+                ) -> tuple[ScanStreamer, threading.Thread]:
+    """A robot daemon streaming the simulator's scans at 20 Hz into the hub's fleet."""
+    settings = RobotSettings(zenoh=connect_to(port), rate_hz=20, max_scans=1000, scale_policy=policy,
+                             wait_edge=5, out_dir=str(out))
+    robot = scan_streamer(settings, stop)
+    thread = threading.Thread(target=RobotServer(settings, [robot], stop).run, daemon=True)
+    thread.start()
+    return robot, thread
+
+
+def stop_robot(stop: StopSignal, thread: threading.Thread) -> None:
+    stop.set()
+    thread.join(30)
+    assert not thread.is_alive()
+
+
+
+def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port: int,
+                                                                       tmp_path: Path) -> None:
+    with fleet_hub(free_port) as (edges, stop):
         a = FakeEdge(free_port, "edgeA", stale=True)
         edges.append(a)
-        settings = RobotSettings(zenoh=connect_to(free_port), rate_hz=20, max_scans=1000,
-                                 scale_policy="fixed", wait_edge=5, out_dir=str(tmp_path))
-        robot = scan_streamer(settings, stop)
-        server = RobotServer(settings, [robot], stop)
-        thread = threading.Thread(target=server.run, daemon=True)
-        thread.start()
+        robot, thread = start_robot(free_port, tmp_path, stop)
         led = robot.ledger
         wait_for(lambda: len(a.scans) >= 15 and led.counters["acked"] >= 10, 30, "edge A acking")
         # Attached: every scan names edge A and the epoch it accepted
@@ -141,14 +172,7 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
         state = robot.fleet_state
         assert state is not None
         wait_for(lambda: state.per_edge.get("edgeB", 0) >= 10, 30, "edge B acking")
-        stop.set()
-        thread.join(30)
-        assert not thread.is_alive()
-    finally:
-        stop.set()
-        for e in edges:
-            e.close()
-        hub.close()
+        stop_robot(stop, thread)
     # The attach to B carried the robot's own checkpoint (far newer than A's) and the poses after it
     att = b.attaches[0]
     cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
@@ -172,3 +196,72 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
     assert {r["pose_source"] for r in rows if r["status"] == "local"} == {"local"}
     poses = np.load(tmp_path / "robot_poses.npz")
     assert len(poses["acked_seqs"]) >= m["balance"]["acked"] + m["balance"]["local"]
+
+
+def test_the_next_edge_gets_the_robots_scans_at_once_while_the_silent_ones_are_unanswered(
+        free_port: int, tmp_path: Path) -> None:
+    """The robot leaves a silent edge with scans in flight to it. Those are not on the new edge's
+    path: before, they filled its window and made its silence until they expired, so the policy
+    held the first scans to the new edge back as a stall and they got a pose from neither side."""
+    with fleet_hub(free_port) as (edges, stop):
+        edges += [FakeEdge(free_port, "edgeA"), FakeEdge(free_port, "edgeB")]
+        robot, thread = start_robot(free_port, tmp_path, stop, policy="rate")
+        wait_for(lambda: max(len(e.scans) for e in edges) >= 20, 30, "an edge acking")
+        first = max(edges, key=lambda e: len(e.scans))
+        nxt = next(e for e in edges if e is not first)
+        first.muted = True  # alive but silent: the robot moves after failover_after
+        wait_for(lambda: len(nxt.scans) >= 20, 30, "the robot on the other edge")
+        stop_robot(stop, thread)
+    m = robot.metrics()
+    f = m["fleet"]
+    assert m["balanced"] and f["failovers"] == 1 and f["moves"] == {"silence": 1}, f
+    rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
+    moved = min(int(r["seq"]) for r in rows if r["edge"] == nxt.edge)
+    answered = min(int(r["seq"]) for r in rows if r["edge"] == nxt.edge and r["status"] == "acked")
+    held = [r["seq"] for r in rows if r["edge"] == nxt.edge and int(r["seq"]) < answered + 5
+            and r["status"].startswith("source:")]
+    assert not held, (moved, answered, held)  # the old code: the stall skipped them
+    assert answered - moved <= 2, (moved, answered)
+    # no scan of the move went without a pose (the silent edge's were bridged by the robot)
+    assert f["max_pose_gap_scans"] <= 1, f
+    lost = [r for r in rows if r["status"] == "lost"]
+    assert lost and all(r["edge"] == first.edge and r["pose_source"] == "local" for r in lost)
+
+
+def test_after_a_kill_the_next_edge_gets_the_dead_edges_poses_after_its_checkpoint(
+        free_port: int, tmp_path: Path) -> None:
+    """An edge dies (its token goes: the robot moves at once, nothing bridged). The attach to the
+    next edge carries the dead edge's last checkpoint and the poses the robot got after it, so the
+    next edge goes on from the newest pose instead of stretching the checkpoint's motion over
+    every scan since (before, it handed over only its local odometry's poses: none here)."""
+    with fleet_hub(free_port) as (edges, stop):
+        a = FakeEdge(free_port, "edgeA", checkpoints=1)
+        edges.append(a)
+        robot, thread = start_robot(free_port, tmp_path, stop)
+        led = robot.ledger
+        state = robot.fleet_state
+        assert state is not None
+        def past_checkpoint() -> bool:
+            cp = state.checkpoint
+            with robot._lock:
+                return cp is not None and sum(s > cp.seq for s in led.poses) >= 8
+
+        wait_for(past_checkpoint, 30, "edge A acking past a checkpoint")
+        b = FakeEdge(free_port, "edgeB")
+        edges.append(b)
+        time.sleep(0.6)  # B's status heard: the robot could move to it at once
+        with robot._lock:  # (between two acks of A)
+            a.leave()
+        wait_for(lambda: len(b.attaches) >= 1, 30, "the attach to edge B")
+        stop_robot(stop, thread)
+    att = b.attaches[0]
+    cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
+    assert cp.edge == "edgeA"
+    acked_after = sorted(s.seq for s in a.scans if s.seq > cp.seq and s.epoch == a.epoch)
+    seqs = list(att.local_seqs)
+    assert len(acked_after) >= 5 and seqs == sorted(seqs) and all(s > cp.seq for s in seqs)
+    # every scan A answered after its checkpoint, with A's pose (x = 1 cm a scan), the newest included
+    answered = [s for s in acked_after if s in robot.ledger.poses]
+    assert answered and set(answered) <= set(seqs), (answered, seqs)
+    poses = dict(zip(seqs, att.local_poses, strict=True))
+    assert all(abs(poses[s][0, 3] - 0.01 * s) < 1e-9 for s in answered)
