@@ -75,12 +75,17 @@ class PoseKeeper:
         self._bridge_from: int | None = None
         # The newest bridged registration (seq, pose, motion per period), for ``prior_for``
         self._local: tuple[int, np.ndarray, np.ndarray] | None = None
+        # After a move off a dead edge: the first scan to the next edge (its ack, or a later
+        # one's, ends the prior the scans carry from the dead edge's unanswered ones)
+        self._prior_from: int | None = None
 
     # The ack callback (caller holds the lock)
     def edge_pose(self, seq: int, pose: np.ndarray) -> None:
         """An acked scan's pose (none from an edge that does not map: all NaN, not kept)."""
         if self._bridge_from is not None and seq >= self._bridge_from:
             self._bridge_from, self._local = None, None  # the edge answered a scan of the bridge
+        if self._prior_from is not None and seq >= self._prior_from:
+            self._prior_from, self._local = None, None  # the next edge answered after a move
         if not np.isfinite(pose).all():
             return
         if seq > self._edge_newest:
@@ -114,7 +119,7 @@ class PoseKeeper:
             return False
         self._bridging, self._target = False, None
         with self.lock:  # the next attach hands this period's poses over
-            self._bridge_from, self._local = None, None
+            self._bridge_from, self._local, self._prior_from = None, None, None
         if not odo.active:
             self._begin(reading.seq, "no edge")
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
@@ -137,11 +142,17 @@ class PoseKeeper:
         previous, self._target = self._target, target
         if previous is not None and previous != target:
             with self.lock:  # another assignment: the attach handed the poses over
-                self._bridge_from, self._local = None, None
+                self._bridge_from, self._local, self._prior_from = None, None, None
             self._bridging = False  # so a bridge to the new edge is one of its own, ended by its acks
             if not odo.active and not self.alive(previous[0]):
-                # moved off a dead edge: what was in flight to it will not be answered
-                self._begin(reading.seq, f"edge {previous[0]} gone")
+                # Moved off a dead edge: what was in flight to it will not be answered. Those
+                # scans are registered after the attach went, so the next edge learns their poses
+                # as the prior its first scans carry: it predicts from the robot's newest pose
+                # instead of stretching its last handed-over one over the scans it never got
+                newest = self._begin(reading.seq, f"edge {previous[0]} gone")
+                if newest is not None:
+                    with self.lock:
+                        self._local, self._prior_from = (*newest, odo.motion), reading.seq
                 odo.end()
         with self.lock:
             answered = self._bridge_from is None
@@ -156,7 +167,7 @@ class PoseKeeper:
         if not self._bridging:
             self._bridging, self.bridges = True, self.bridges + 1
             with self.lock:
-                self._bridge_from = reading.seq
+                self._bridge_from, self._prior_from = reading.seq, None
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         self.bridged += 1
         with self.lock:
@@ -182,10 +193,10 @@ class PoseKeeper:
                 self.ledger.records[seq]["cpu_local_ms"] = cpu
             self.pose = (pose, 1.0)
 
-    def _begin(self, seq: int, why: str) -> None:
+    def _begin(self, seq: int, why: str) -> tuple[int, np.ndarray] | None:
         """Start a period from the freshest checkpoint and the newest poses after it (the edge's
         or the local odometry's of an earlier period), and register first the held scans the edge
-        never answered."""
+        never answered; returns the newest of those (seq, pose), if any."""
         assert self.odometry is not None
         odo = self.odometry
         cp, mine = self.fleet.checkpoint, odo.snapshot().checkpoint
@@ -195,12 +206,14 @@ class PoseKeeper:
             newest = self._newest_poses(cp.seq if cp is not None else -1)
             posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
         odo.begin(cp, newest)
-        for s, pose, cpu in odo.catch_up(seq, posed):
+        caught = odo.catch_up(seq, posed)
+        for s, pose, cpu in caught:
             with self.lock:
                 if self.ledger.local_pose(s, pose):
                     self.ledger.records[s]["cpu_local_ms"] = cpu
         log.info("mapping locally from scan %d, %s (checkpoint %s, %d scans caught up)", seq, why,
                  f"{cp.edge or 'local'}:{cp.seq}" if cp is not None else "none", odo.caught_up)
+        return (caught[-1][0], caught[-1][1]) if caught else None
 
     def handover(self) -> Snapshot:
         """What the next attach hands over (fleet thread): the local odometry's newest checkpoint

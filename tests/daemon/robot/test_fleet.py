@@ -9,6 +9,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from zoffload.protocol import wire
 from zoffload.robot.fleet import OWN_CHECKPOINT_AFTER
 from zoffload.robot.scans import ScanStreamer, scan_streamer
 from zoffload.robot.server import RobotServer
-from zoffload.runtime.config import RobotSettings
+from zoffload.runtime.config import RobotFleetSettings, RobotSettings
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.session import open_session
 
@@ -127,11 +128,11 @@ def fleet_hub(port: int) -> Iterator[tuple[list[FakeEdge], StopSignal]]:
         hub.close()
 
 
-def start_robot(port: int, out: Path, stop: StopSignal, policy: str = "fixed"
+def start_robot(port: int, out: Path, stop: StopSignal, policy: str = "fixed", **fleet: Any
                 ) -> tuple[ScanStreamer, threading.Thread]:
     """A robot daemon streaming the simulator's scans at 20 Hz into the hub's fleet."""
     settings = RobotSettings(zenoh=connect_to(port), rate_hz=20, max_scans=1000, scale_policy=policy,
-                             wait_edge=5, out_dir=str(out))
+                             wait_edge=5, out_dir=str(out), fleet=RobotFleetSettings(**fleet))
     robot = scan_streamer(settings, stop)
     thread = threading.Thread(target=RobotServer(settings, [robot], stop).run, daemon=True)
     thread.start()
@@ -228,19 +229,22 @@ def test_the_next_edge_gets_the_robots_scans_at_once_while_the_silent_ones_are_u
     assert lost and all(r["edge"] == first.edge and r["pose_source"] == "local" for r in lost)
 
 
-def test_after_a_kill_the_next_edge_gets_the_dead_edges_poses_after_its_checkpoint(
+def test_after_a_kill_the_next_edge_gets_the_poses_after_the_checkpoint_and_the_unanswered_ones(
         free_port: int, tmp_path: Path) -> None:
-    """An edge dies (its token goes: the robot moves at once, nothing bridged). The attach to the
-    next edge carries the dead edge's last checkpoint and the poses the robot got after it, so the
-    next edge goes on from the newest pose instead of stretching the checkpoint's motion over
-    every scan since (before, it handed over only its local odometry's poses: none here)."""
+    """An edge dies (its token goes: the robot moves at once) with scans unanswered. The attach to
+    the next edge carries the dead edge's last checkpoint and the poses the robot got after it
+    (before: only its local odometry's, none here), and the robot's first scans to it carry, as
+    their prior, the local pose of the newest unanswered scan (registered once the robot moved,
+    after the attach went), so the next edge predicts from the robot's newest pose instead of
+    stretching the checkpoint's motion over every scan since."""
     with fleet_hub(free_port) as (edges, stop):
         a = FakeEdge(free_port, "edgeA", checkpoints=1)
         edges.append(a)
-        robot, thread = start_robot(free_port, tmp_path, stop)
+        robot, thread = start_robot(free_port, tmp_path, stop, bridge_after=5.0)  # no bridge here
         led = robot.ledger
         state = robot.fleet_state
         assert state is not None
+
         def past_checkpoint() -> bool:
             cp = state.checkpoint
             with robot._lock:
@@ -250,9 +254,10 @@ def test_after_a_kill_the_next_edge_gets_the_dead_edges_poses_after_its_checkpoi
         b = FakeEdge(free_port, "edgeB")
         edges.append(b)
         time.sleep(0.6)  # B's status heard: the robot could move to it at once
-        with robot._lock:  # (between two acks of A)
-            a.leave()
-        wait_for(lambda: len(b.attaches) >= 1, 30, "the attach to edge B")
+        a.muted = True
+        time.sleep(0.15)  # three scans or so unanswered
+        a.leave()
+        wait_for(lambda: len(b.scans) >= 10, 30, "edge B acking")
         stop_robot(stop, thread)
     att = b.attaches[0]
     cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
@@ -261,7 +266,15 @@ def test_after_a_kill_the_next_edge_gets_the_dead_edges_poses_after_its_checkpoi
     seqs = list(att.local_seqs)
     assert len(acked_after) >= 5 and seqs == sorted(seqs) and all(s > cp.seq for s in seqs)
     # every scan A answered after its checkpoint, with A's pose (x = 1 cm a scan), the newest included
-    answered = [s for s in acked_after if s in robot.ledger.poses]
+    answered = [s for s in acked_after if s in led.poses]
     assert answered and set(answered) <= set(seqs), (answered, seqs)
     poses = dict(zip(seqs, att.local_poses, strict=True))
     assert all(abs(poses[s][0, 3] - 0.01 * s) < 1e-9 for s in answered)
+    # the scans A left unanswered were registered by the robot; B's first scan brings the newest
+    unanswered = [s for s, r in led.records.items()
+                  if r.get("edge") == "edgeA" and r.get("pose_source") == "local"]
+    assert unanswered and robot.poses is not None and robot.poses.bridges == 0
+    first = b.scans[0]
+    assert first.prior is not None and first.prior_seq == max(unanswered) < first.seq
+    assert np.allclose(first.prior[0], led.poses[max(unanswered)])
+    assert b.scans[-1].prior is None  # B answered: the prior ends
