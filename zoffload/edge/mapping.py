@@ -210,7 +210,6 @@ class MappingService:
         if scan.coding != "f32" and scan.n_points > self.limits.max_points:  # before it waits in a queue
             self.drops.drop("malformed", f"scan of {scan.n_points} points (at most {self.limits.max_points})")
             return
-        overflow: list[Queued] = []
         with self._lock:
             rs = self.robots.get(robot) or self._new_robot(robot)
             interarrival = float("nan") if rs.last_arrival is None else arrival - rs.last_arrival
@@ -219,14 +218,7 @@ class MappingService:
                 rs.gaps.append(interarrival)
             rs.counters["received"] += 1
             self.counters["received"] += 1
-            rs.queue.append(Queued(scan, arrival, interarrival))
-            rs.kept.append(scan.seq)
-            while len(rs.queue) > self.queue_len:  # thinned, not cut (RobotSession.victim)
-                i = rs.victim()
-                overflow.append(rs.queue[i])
-                del rs.queue[i]
-                if overflow[-1].scan.seq in rs.kept:
-                    rs.kept.remove(overflow[-1].scan.seq)
+            overflow = rs.push(Queued(scan, arrival, interarrival), self.queue_len)  # thinned, not cut
             if not rs.scheduled:
                 rs.scheduled = True
                 self._ready.append(rs)

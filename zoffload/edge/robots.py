@@ -103,6 +103,19 @@ class RobotSession:
     last_stamp: float = 0.0  # capture stamp of its last registered scan
     cp_pub: zenoh.Publisher | None = None
 
+    def push(self, item: Queued, limit: int) -> list[Queued]:
+        """Queue ``item``; returns the scans dropped to keep at most ``limit`` waiting (``victim``)."""
+        self.queue.append(item)
+        self.kept.append(item.scan.seq)
+        dropped: list[Queued] = []
+        while len(self.queue) > limit:
+            i = self.victim()
+            dropped.append(self.queue[i])
+            del self.queue[i]
+            if dropped[-1].scan.seq in self.kept:
+                self.kept.remove(dropped[-1].scan.seq)
+        return dropped
+
     def victim(self) -> int:
         """The index of the queued scan to drop when the queue is over its length: never the
         newest; the oldest, unless dropping the one after it leaves a shorter run of the robot's

@@ -231,10 +231,7 @@ class PoseKeeper:
         snap = odo.snapshot() if odo is not None else none
         merged = {int(s): p for s, p in zip(snap.seqs, snap.poses, strict=True)}
         with self.lock:
-            poses = self.ledger.poses
-            for seq in heapq.nlargest(HANDOVER_POSES, poses):
-                if np.isfinite(poses[seq]).all():  # an edge that does not map acks with NaN
-                    merged[seq] = np.array(poses[seq])
+            merged.update(self._newest_poses(-1, HANDOVER_POSES))
         seqs = sorted(merged)
         return Snapshot(snap.checkpoint, np.array(seqs, np.int64),
                         np.array([merged[s] for s in seqs], np.float64).reshape(-1, 4, 4))

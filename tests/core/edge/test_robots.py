@@ -46,14 +46,10 @@ def test_a_scan_is_spared_once_so_a_long_burst_keeps_the_queue_fresh() -> None:
     rs = session([0], [])
     dropped, queues = [], []
     for seq in range(1, 11):  # scan 0 is registering; nothing leaves the queue meanwhile
-        rs.queue.append(SimpleNamespace(scan=SimpleNamespace(seq=seq)))  # type: ignore[arg-type]
-        rs.kept.append(seq)
-        while len(rs.queue) > 2:
-            i = rs.victim()
-            dropped.append(rs.queue[i].scan.seq)
-            del rs.queue[i]
-            rs.kept.remove(dropped[-1])
+        out = rs.push(SimpleNamespace(scan=SimpleNamespace(seq=seq)), 2)  # type: ignore[arg-type]
+        dropped += [q.scan.seq for q in out]
         queues.append([q.scan.seq for q in rs.queue])
+    assert list(rs.kept) == [s for s in range(11) if s not in dropped]  # dropped ones forgotten
     # the first overflows thin (1, then 3 instead of 2); 2, spared once, goes at the next
     assert dropped[:3] == [1, 3, 2] and queues[4] == [4, 5]
     # however long the burst, the oldest waiting scan is at most two behind the newest
