@@ -13,8 +13,10 @@ calls it under its own lock.
   than one attached robot sheds the newest one (at most one per ``window``), and the announced
   capacity drops to the robots kept for ``hold`` seconds.
 * **Drain and final checkpoints.** Draining (SIGTERM) or shedding asks a final checkpoint of the
-  robot; the edge's drain is over when every attached robot has moved (its scans carry another
-  edge) or has been quiet for ``quiet`` seconds with no final checkpoint still owed.
+  robot; its scans are mapped until it moves (a shed robot's for ``quiet`` seconds after its final
+  checkpoint went, then refused); the edge's drain is over when every attached robot has moved
+  (its scans carry another edge) or has been quiet for ``quiet`` seconds with no final checkpoint
+  still owed.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ class Attached:
     order: int  # attach order: the newest is shed first
     last_scan: float  # edge monotonic clock: attach time, then its last scan under this epoch
     final: str = ""  # "" no final checkpoint asked, "pending", "sent"
+    final_at: float = 0.0  # edge monotonic clock: when the final checkpoint went
     shed: bool = False
     moved: bool = False  # its scans now name another edge
     reads: int = 5  # the newest codec version its attach said it reads (6: coded checkpoints)
@@ -165,17 +168,20 @@ class Fleet:
         if entry is None or entry.epoch != epoch or not edge:
             detail = "draining" if self.draining else f"not attached (epoch {epoch})"
             return Route(REFUSE, detail, "stale_epoch")
-        if entry.shed and entry.final == "sent":
+        if entry.shed and entry.final == "sent" and now - entry.final_at >= self.quiet:
+            # Mapped until then, as a draining edge maps: the scans the robot sent before its
+            # final checkpoint reached it got refusals and no pose (a gap of up to three scans
+            # in the traced fleet runs); a robot that ignores the final is refused after it
             return Route(REFUSE, "shed: over capacity", "shed")
         entry.last_scan = now
         entry.moved = False
         return Route(MAP)
 
     # Final checkpoints
-    def final_sent(self, robot: str) -> None:
+    def final_sent(self, robot: str, now: float) -> None:
         entry = self.attached.get(robot)
         if entry is not None:
-            entry.final = "sent"
+            entry.final, entry.final_at = "sent", now
 
     def begin_drain(self, now: float) -> list[str]:
         """Start draining; the attached robots, each now owed a final checkpoint."""

@@ -334,7 +334,7 @@ class MappingService:
             self._count(rs, f"gap_{reg.gap_motion}")
         rs.last_stamp = scan.capture_stamp
         self._ack(rs, item, status="ok", queue_time=start - item.arrival, reg=reg)
-        if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending:
+        if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending and not self._final_sent(rs):
             rs.since_checkpoint += 1
             if rs.checkpoint_epoch != scan.epoch or rs.since_checkpoint >= self.checkpoint_every:
                 self._send_checkpoint(rs, scan.epoch)
@@ -422,6 +422,12 @@ class MappingService:
             self.counters["checkpoint_us"] = int((time.perf_counter() - t0) * 1e6)
         return True
 
+    def _final_sent(self, rs: RobotSession) -> bool:
+        """Whether the robot has had its final checkpoint (no periodic one follows it)."""
+        with self._lock:
+            entry = self.fleet.attached.get(rs.robot)
+            return entry is not None and entry.final == "sent"
+
     def _send_final(self, rs: RobotSession) -> None:
         """The robot's final checkpoint (drain, shed): after its latest scan, or its attach's
         checkpoint handed back when it registered none here."""
@@ -439,7 +445,7 @@ class MappingService:
                               congestion_control=zenoh.CongestionControl.BLOCK)
             self._count(rs, "final_checkpoints")
         with self._lock:
-            self.fleet.final_sent(rs.robot)
+            self.fleet.final_sent(rs.robot, time.monotonic())
         log.info("robot %s: final checkpoint sent", rs.robot)
 
     def _ask_final(self, robot: str) -> None:

@@ -59,7 +59,7 @@ def test_drain_asks_final_checkpoints_and_ends_when_robots_moved_or_went_quiet()
     assert f.status(10.0)["draining"] == 1.0
     assert not f.drained(20.0)  # final checkpoints still owed
     for r in ("r1", "r2", "r3"):
-        f.final_sent(r)
+        f.final_sent(r, 19.0)
     f.route("r1", "e1", 1, 20.0)  # r1 still sends under the old epoch
     f.route("r2", "e2", 2, 20.0)  # r2 moved
     assert not f.drained(20.5)  # r1 sent 0.5 s ago
@@ -90,11 +90,13 @@ def test_shedding_takes_the_newest_robot_when_busy_and_dropping() -> None:
     assert g.attached["r3"].shed and g.attached["r3"].final == "pending"
     assert g.effective_capacity(now) == 2 and g.status(now)["capacity"] == 2.0
     assert g.to_shed(now + 1, workers=2) is None  # at most one per window
-    # Refused once its final checkpoint is out; its session may go when it moved or went quiet
+    # Mapped until its final checkpoint has been out for ``quiet`` s (the scans it sent before the
+    # final reached it get poses), refused after; its session may go when it moved or went quiet
     assert g.route("r3", "e1", 1, now + 1).action == MAP
-    g.final_sent("r3")
-    assert g.route("r3", "e1", 1, now + 1).detail == "shed: over capacity"
-    assert g.shed_gone(now + 1.5) == [] and g.shed_gone(now + 2.1) == ["r3"]
+    g.final_sent("r3", now + 1)
+    assert g.route("r3", "e1", 1, now + 1.5).action == MAP
+    assert g.route("r3", "e1", 1, now + 2.0).detail == "shed: over capacity"
+    assert g.shed_gone(now + 2.4) == [] and g.shed_gone(now + 2.6) == ["r3"]
     assert g.effective_capacity(now + 29) == 2 and g.effective_capacity(now + 31) == 3
     # Never the last robot, never when shedding is off
     h = fleet(capacity=3, shed=False)

@@ -223,11 +223,13 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -
         assert attach(s, "r1", 1).accepted and attach(s, "r2", 1).accepted
         pts = np.zeros((10, 3), np.float32)
         stop = threading.Event()
+        sent_at: dict[int, float] = {}  # seq -> when it went (this process's monotonic clock: the edge's)
 
         def stream() -> None:
             pubs = {r: s.declare_publisher(KEYS.scan(r)) for r in ("r1", "r2")}
             seq = 0
             while not stop.is_set():
+                sent_at[seq] = time.monotonic()
                 for r, pub in pubs.items():
                     pub.put(scan(r, seq, epoch=1, edge="e1", pts=pts))
                 seq += 1
@@ -255,6 +257,14 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -
             stop.set()
             sender.join(5)
         assert not any(a.status == "refused" for a in acks["r1"].items)  # the oldest is kept
+        # The scans r2 sent after its final checkpoint went (before it could have reached a robot)
+        # are still mapped for ``quiet`` s, then refused: a robot's last scans before it moves get poses
+        final_at = service.fleet.attached["r2"].final_at
+        after = [a for a in acks["r2"].items if sent_at.get(a.seq, 0.0) > final_at]
+        mapped = [a.seq for a in after if a.status == "ok"]
+        refused = [a.seq for a in after if a.status == "refused"]
+        assert len(mapped) >= 3 and refused and max(mapped) < min(refused), (mapped, refused)
+        assert sent_at[min(refused)] > final_at + 0.9 * fleet.quiet
         assert service.status()["capacity"] == 1
         assert service.fleet.attached["r2"].shed
         assert attach(s, "r3", 1).detail == "full: 2 of 1 robots"

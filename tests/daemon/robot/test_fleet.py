@@ -219,9 +219,13 @@ def test_the_next_edge_gets_the_robots_scans_at_once_while_the_silent_ones_are_u
     rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
     moved = min(int(r["seq"]) for r in rows if r["edge"] == nxt.edge)
     answered = min(int(r["seq"]) for r in rows if r["edge"] == nxt.edge and r["status"] == "acked")
+    # Held back by the window or the stall (the old code: the stall skipped them). Not the pace:
+    # a scan skipped on purpose because the last one needs the uplink for more than a period is
+    # the policy's rate choice, and the uplink is the robot's own, whichever edge it goes to (on a
+    # loaded machine the fake edges answer late, the budget is cut and the pace skips some)
     held = [r["seq"] for r in rows if r["edge"] == nxt.edge and int(r["seq"]) < answered + 5
-            and r["status"].startswith("source:")]
-    assert not held, (moved, answered, held)  # the old code: the stall skipped them
+            and r["status"] in ("source:stall", "source:window")]
+    assert not held, (moved, answered, held)
     assert answered - moved <= 2, (moved, answered)
     # no scan of the move went without a pose (the silent edge's were bridged by the robot)
     assert f["max_pose_gap_scans"] <= 1, f
