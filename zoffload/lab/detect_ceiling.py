@@ -1,0 +1,127 @@
+"""``python -m zoffload.lab.detect_ceiling``: how high asynchronous AP50 can go on a set of clips.
+
+Asynchronous AP50 (lab/eval/detection.py) scores a frame's detections against the ground truth of
+the frame current when they arrived, and a frame never processed as a miss. So no strategy scores
+more than a detector that processes *every* frame with its answers arriving ``k`` camera periods
+after capture, for the smallest ``k`` its latency allows: this prints that figure for each model
+and lag (the real detectors' outputs on every frame, cached as the simulation caches them,
+lab/offload_sim.py ``clip_detections``). An answer that needs the edge's inference (38-65 ms on
+the development machine) plus the link is at least one 40 ms period late; the quarter-core robot's
+detector (~100 ms and more) two or three. The strategies' rows are read against it: what a
+dispatcher could still win over "edge only" is the distance from edge only's score to the edge
+model's row at the lag it achieves.
+
+``--runs RUN...`` (detect experiment runs on the same clips) prints each run's score, the frames it
+processed and their mean lateness, and a what-if: the frames the edge answered ``dropped`` (it
+serves the newest waiting frame) detected by the robot's model some time after that answer came.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from zoffload.lab.eval.ap import average_precision
+from zoffload.lab.offload_sim import clip_detections
+
+MODELS = ("picodet-s", "nanodet-m")  # the edge's detector, the robot's
+
+Detections = tuple[np.ndarray, np.ndarray]  # boxes (n, 4), scores (n,)
+
+
+def late_ap(dets: Sequence[Detections], gt: Callable[[int], np.ndarray], lag: int) -> float:
+    """AP50 (%) of ``dets`` (one entry per frame, every frame processed) when each frame's are
+    scored against the ground truth ``lag`` frames later (the last frame's for the last ones)."""
+    n = len(dets)
+    return 100 * average_precision(list(dets), [gt(min(i + lag, n - 1)) for i in range(n)])
+
+
+def dropped_detected_later(run: Path, dets: Sequence[Detections], after: float,
+                           gt: Callable[[int], np.ndarray], n: int) -> tuple[float, int]:
+    """Async AP50 of ``run`` had each frame the edge answered ``dropped`` been detected by the model
+    of ``dets`` ``after`` seconds after that answer; and how many such frames there were."""
+    from zoffload.lab.eval.detection import detection_metrics
+
+    with open(run / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    z = dict(np.load(run / "detections.npz"))
+    seqs, counts = list(z["seqs"]), list(z["counts"])
+    boxes, scores = [z["boxes"].reshape(-1, 4)], [z["scores"]]
+    changed = 0
+    for r in rows:
+        if r["status"] == "edge_dropped" and r["result"] and int(r["seq"]) < len(dets):
+            seq = int(r["seq"])
+            b, sc = dets[seq]
+            r["status"], r["result"] = "local_done", str(float(r["result"]) + after)
+            seqs.append(seq)
+            counts.append(len(sc))
+            boxes.append(b.reshape(-1, 4))
+            scores.append(sc)
+            changed += 1
+    tmp = Path(tempfile.mkdtemp(prefix="zoffload-whatif-"))
+    try:
+        with open(tmp / "frames.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        z.update(seqs=np.array(seqs), counts=np.array(counts), boxes=np.concatenate(boxes),
+                 scores=np.concatenate(scores))
+        np.savez(tmp / "detections.npz", **z)
+        return detection_metrics(tmp, gt, n)["ap50_async"], changed
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m zoffload.lab.detect_ceiling",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--images", default="coco-clips@holdout",
+                   help="clips with ground truth: coco-clips[:FOLDER][@tune|@holdout] (default: held-out)")
+    p.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
+    p.add_argument("--max-lag", type=int, default=4, help="largest lag in camera periods (default 4)")
+    p.add_argument("--models", nargs="+", default=list(MODELS), help="detectors (default: %(default)s)")
+    p.add_argument("--runs", type=Path, nargs="*", default=[],
+                   help="detect experiment runs on these clips: their scores and the dropped-frames what-if")
+    p.add_argument("--after", type=float, nargs="+", default=[0.15, 0.3],
+                   help="what-if: seconds from the drop answer to the robot's result (default 0.15 0.3)")
+    p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "zoffload" / "sim",
+                   help="folder of the cached detections (shared with the simulation)")
+    args = p.parse_args(argv)
+    from zoffload.sources.images import CocoClipSource, open_image_source
+
+    source = open_image_source(args.images)
+    if not isinstance(source, CocoClipSource):
+        p.error(f"{args.images}: needs clips with ground truth (coco-clips)")
+    n = len(source) if args.frames is None else min(args.frames, len(source))
+    tag = args.images.replace(":", "_").replace("/", "_").replace("@", "_")
+    lags = range(args.max_lag + 1)
+    print(f"{args.images}: {n} frames, every frame detected, scored k camera periods late (AP50 %)")
+    print("| model | " + " | ".join(f"k = {k}" for k in lags) + " |")
+    print("| --- | " + " | ".join("---" for _ in lags) + " |")
+    for model in args.models:
+        dets = clip_detections(source, model, n, args.cache / f"{tag}-{model}.npz")[:n]
+        print(f"| {model} | " + " | ".join(f"{late_ap(dets, source.boxes, k):.1f}" for k in lags) + " |")
+    if args.runs:
+        from zoffload.lab.eval.detection import detection_metrics
+
+        local = clip_detections(source, MODELS[1], n, args.cache / f"{tag}-{MODELS[1]}.npz")[:n]
+        print("\n| run | async AP50 | processed | mean lateness (frames) | edge dropped | "
+              + " | ".join(f"dropped ones by {MODELS[1]} {1000 * a:.0f} ms later" for a in args.after) + " |")
+        print("| --- | --- | --- | --- | --- | " + " | ".join("---" for _ in args.after) + " |")
+        for run in args.runs:
+            m = detection_metrics(run, source.boxes, n)
+            whatif = [dropped_detected_later(run, local, a, source.boxes, n) for a in args.after]
+            print(f"| {run} | {m['ap50_async']:.1f} | {m['processed']} | {m['mean_lateness_frames']:.2f} | "
+                  f"{whatif[0][1]} | " + " | ".join(f"{ap:.1f}" for ap, _ in whatif) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
