@@ -254,9 +254,11 @@ class Fleet:
 
     def shed_gone(self, now: float) -> list[str]:
         """Shed robots that have moved, or gone quiet after their final checkpoint: their sessions
-        can go."""
+        can go. Not before ``quiet`` s after the final (the scans mapped meanwhile would be answered
+        ``dropped`` with the session)."""
         return [r for r, e in self.attached.items()
-                if e.shed and e.final == "sent" and (e.moved or now - e.last_scan >= self.quiet)]
+                if e.shed and e.final == "sent" and now - e.final_at >= self.quiet
+                and (e.moved or now - e.last_scan >= self.quiet)]
 
     def status(self, now: float) -> dict[str, float]:
         return {"capacity": float(self.effective_capacity(now)), "draining": float(self.draining),

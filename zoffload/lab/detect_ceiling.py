@@ -1,15 +1,16 @@
 """``python -m zoffload.lab.detect_ceiling``: how high asynchronous AP50 can go on a set of clips.
 
 Asynchronous AP50 (lab/eval/detection.py) scores a frame's detections against the ground truth of
-the frame current when they arrived, and a frame never processed as a miss. So no strategy scores
-more than a detector that processes *every* frame with its answers arriving ``k`` camera periods
-after capture, for the smallest ``k`` its latency allows: this prints that figure for each model
-and lag (the real detectors' outputs on every frame, cached as the simulation caches them,
-lab/offload_sim.py ``clip_detections``). An answer that needs the edge's inference (38-65 ms on
-the development machine) plus the link is at least one 40 ms period late; the quarter-core robot's
-detector (~100 ms and more) two or three. The strategies' rows are read against it: what a
-dispatcher could still win over "edge only" is the distance from edge only's score to the edge
-model's row at the lag it achieves.
+the frame current when they arrived, and a frame never processed as a miss. So a strategy whose
+answers come ``k`` camera periods after capture scores about what a detector answering *every*
+frame at that lag scores, at most: this prints that figure for each model and lag (the real
+detectors' outputs on every frame, cached as the simulation caches them, lab/offload_sim.py
+``clip_detections``). A reference level, not a proof: AP is not a sum over frames, and answers at
+mixed lags and from both models score in between. An answer that needs the edge's inference
+(38-65 ms a frame on the development machine, from day to day) plus the link is about one 40 ms
+period late; the quarter-core robot's detector (~100 ms and more) two to four. The strategies'
+rows are read against it: what a dispatcher could still win over "edge only" is the distance from
+edge only's score to the edge model's row at the lag it achieves.
 
 ``--runs RUN...`` (detect experiment runs on the same clips) prints each run's score, the frames it
 processed and their mean lateness, and a what-if: the frames the edge answered ``dropped`` (it
@@ -44,13 +45,16 @@ def late_ap(dets: Sequence[Detections], gt: Callable[[int], np.ndarray], lag: in
 
 
 def dropped_detected_later(run: Path, dets: Sequence[Detections], after: float,
-                           gt: Callable[[int], np.ndarray], n: int) -> tuple[float, int]:
-    """Async AP50 of ``run`` had each frame the edge answered ``dropped`` been detected by the model
-    of ``dets`` ``after`` seconds after that answer; and how many such frames there were."""
+                           gt: Callable[[int], np.ndarray], n: int | None = None) -> tuple[float, int]:
+    """Async AP50 of ``run`` (over its ``n`` frames; None: the frames it recorded) had each frame
+    the edge answered ``dropped`` been detected by the model of ``dets`` ``after`` seconds after
+    that answer; and how many such frames there were."""
     from zoffload.lab.eval.detection import detection_metrics
 
     with open(run / "frames.csv", newline="") as f:
         rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{run}: frames.csv has no frame")
     z = dict(np.load(run / "detections.npz"))
     seqs, counts = list(z["seqs"]), list(z["counts"])
     boxes, scores = [z["boxes"].reshape(-1, 4)], [z["scores"]]
@@ -116,8 +120,12 @@ def main(argv: list[str] | None = None) -> int:
               + " | ".join(f"dropped ones by {MODELS[1]} {1000 * a:.0f} ms later" for a in args.after) + " |")
         print("| --- | --- | --- | --- | --- | " + " | ".join("---" for _ in args.after) + " |")
         for run in args.runs:
-            m = detection_metrics(run, source.boxes, n)
-            whatif = [dropped_detected_later(run, local, a, source.boxes, n) for a in args.after]
+            try:  # each run over its own frames (a run of fewer frames is not scored on the rest)
+                m = detection_metrics(run, source.boxes)
+                whatif = [dropped_detected_later(run, local, a, source.boxes) for a in args.after]
+            except (OSError, ValueError, KeyError) as exc:
+                print(f"| {run} | not a detect run of these clips: {exc} |")
+                continue
             print(f"| {run} | {m['ap50_async']:.1f} | {m['processed']} | {m['mean_lateness_frames']:.2f} | "
                   f"{whatif[0][1]} | " + " | ".join(f"{ap:.1f}" for ap, _ in whatif) + " |")
     return 0

@@ -97,6 +97,10 @@ def test_shedding_takes_the_newest_robot_when_busy_and_dropping() -> None:
     assert g.route("r3", "e1", 1, now + 1.5).action == MAP
     assert g.route("r3", "e1", 1, now + 2.0).detail == "shed: over capacity"
     assert g.shed_gone(now + 2.4) == [] and g.shed_gone(now + 2.6) == ["r3"]
+    # Moved (its scans name another edge): its session goes, but not within the grace, whose
+    # mapped scans would be answered "dropped" with it
+    g.route("r3", "e2", 2, now + 1.6)
+    assert g.shed_gone(now + 1.7) == [] and g.shed_gone(now + 2.0) == ["r3"]
     assert g.effective_capacity(now + 29) == 2 and g.effective_capacity(now + 31) == 3
     # Never the last robot, never when shedding is off
     h = fleet(capacity=3, shed=False)

@@ -149,7 +149,9 @@ def test_attach_continues_the_checkpoint_and_checkpoints_come_back(free_port: in
 
 
 def test_drain_sends_final_checkpoints_and_keeps_mapping_the_old_epoch(free_port: int) -> None:
-    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=4))
+    # A checkpoint after every registered scan, so one after the final would show
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=4),
+                             checkpoint_every=1)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
         acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
@@ -159,16 +161,19 @@ def test_drain_sends_final_checkpoints_and_keeps_mapping_the_old_epoch(free_port
         for seq in range(3):
             pub.put(scan("r1", seq, epoch=1, edge="e1"))
             acks.wait(seq + 1)
-        cps.wait(1)
+        cps.wait(3)  # one a scan
         service.begin_drain()
-        cps.wait(2)  # idle: at once
+        wait_for(lambda: any(c.final for c in cps.items), 5, "the final checkpoint")  # idle: at once
         final = cps.items[-1]
         assert final.final and final.seq == 2 and final.epoch == 1
         assert service.status()["draining"] == 1.0
         assert attach(s, "r3", 1).detail == "draining"
-        pub.put(scan("r1", 3, epoch=1, edge="e1"))  # still mapped while it moves
-        acks.wait(4)
-        assert acks.items[-1].status == "ok"
+        for seq in (3, 4, 5):  # still mapped while it moves, and no periodic checkpoint after the final
+            pub.put(scan("r1", seq, epoch=1, edge="e1"))
+            acks.wait(seq + 1)
+        assert [a.status for a in acks.items[3:]] == ["ok"] * 3
+        time.sleep(0.3)
+        assert cps.items[-1] is final, [(c.seq, c.final) for c in cps.items]
         assert not service.drained()
         wait_for(service.drained, 5, "drained after a quiet second")
         assert service.status()["final_checkpoints"] == 1  # r2 had nothing to hand over
@@ -258,13 +263,20 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -
             sender.join(5)
         assert not any(a.status == "refused" for a in acks["r1"].items)  # the oldest is kept
         # The scans r2 sent after its final checkpoint went (before it could have reached a robot)
-        # are still mapped for ``quiet`` s, then refused: a robot's last scans before it moves get poses
+        # are still mapped for ``quiet`` s, then refused: a robot's last scans before it moves get
+        # poses. (No tick until the asserts: it would evict r2 and answer its queue "dropped".)
         final_at = service.fleet.attached["r2"].final_at
-        after = [a for a in acks["r2"].items if sent_at.get(a.seq, 0.0) > final_at]
-        mapped = [a.seq for a in after if a.status == "ok"]
-        refused = [a.seq for a in after if a.status == "refused"]
-        assert len(mapped) >= 3 and refused and max(mapped) < min(refused), (mapped, refused)
-        assert sent_at[min(refused)] > final_at + 0.9 * fleet.quiet
+
+        def after() -> list[wire.ScanAck]:
+            return [a for a in list(acks["r2"].items) if sent_at.get(a.seq, 0.0) > final_at]
+
+        refused = [a.seq for a in after() if a.status == "refused"]
+        assert refused and sent_at[min(refused)] > final_at + 0.9 * fleet.quiet
+        # every scan sent before the first refused one answered (r2's backlog drains)
+        sent_before = {q for q, t in sent_at.items() if final_at < t < sent_at[min(refused)]}
+        wait_for(lambda: sent_before <= {a.seq for a in after()}, 10, "the scans of the grace answered")
+        mapped = [a.seq for a in after() if a.status == "ok"]
+        assert len(mapped) >= 3 and max(mapped) < min(refused), (mapped, refused)
         assert service.status()["capacity"] == 1
         assert service.fleet.attached["r2"].shed
         assert attach(s, "r3", 1).detail == "full: 2 of 1 robots"

@@ -13,7 +13,7 @@ from zoffload.lab.detect_ceiling import late_ap
 
 def test_a_moving_person_found_on_every_frame_scores_less_the_later_it_is_scored() -> None:
     """A box 10 px wide moving 3 px a frame: found exactly, it is perfect on time, still matched
-    (IoU 0.54) one frame late, missed from two frames late on (IoU 0.29)."""
+    (IoU 0.54) one frame late, missed from two frames late on (IoU 0.25)."""
     def gt(i: int) -> np.ndarray:
         return np.array([[3.0 * i, 0, 3.0 * i + 10, 10]], np.float32)
 
