@@ -334,7 +334,7 @@ class MappingService:
             self._count(rs, f"gap_{reg.gap_motion}")
         rs.last_stamp = scan.capture_stamp
         self._ack(rs, item, status="ok", queue_time=start - item.arrival, reg=reg)
-        if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending and not self._final_sent(rs):
+        if scan.epoch > 0 and scan.edge == self.edge_id and not rs.final_pending:
             rs.since_checkpoint += 1
             if rs.checkpoint_epoch != scan.epoch or rs.since_checkpoint >= self.checkpoint_every:
                 self._send_checkpoint(rs, scan.epoch)
@@ -395,6 +395,8 @@ class MappingService:
         resolution = self.final_checkpoint_resolution if final else self.checkpoint_resolution
         with self._lock:
             entry = self.fleet.attached.get(rs.robot)
+            if not final and entry is not None and entry.final == "sent":
+                return False  # no periodic checkpoint after the final one
             # Coded for a robot that reads 6; a final one (the whole local map) stays float32: coding
             # it took 36 ms per robot in the draining edge's worker, and the drains' moves took twice
             # as long (README, "Checkpoints")
@@ -421,12 +423,6 @@ class MappingService:
             self.counters["checkpoint_bytes"] = len(data)
             self.counters["checkpoint_us"] = int((time.perf_counter() - t0) * 1e6)
         return True
-
-    def _final_sent(self, rs: RobotSession) -> bool:
-        """Whether the robot has had its final checkpoint (no periodic one follows it)."""
-        with self._lock:
-            entry = self.fleet.attached.get(rs.robot)
-            return entry is not None and entry.final == "sent"
 
     def _send_final(self, rs: RobotSession) -> None:
         """The robot's final checkpoint (drain, shed): after its latest scan, or its attach's

@@ -20,17 +20,15 @@ serves the newest waiting frame) detected by the robot's model some time after t
 from __future__ import annotations
 
 import argparse
-import csv
-import shutil
 import sys
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from zoffload.lab.eval.ap import average_precision
-from zoffload.lab.offload_sim import clip_detections
+from zoffload.lab.eval.detection import detection_metrics, load_run, score_frames
+from zoffload.lab.offload_sim import CACHE, clip_detections, detections_cache
 
 MODELS = ("picodet-s", "nanodet-m")  # the edge's detector, the robot's
 
@@ -49,38 +47,16 @@ def dropped_detected_later(run: Path, dets: Sequence[Detections], after: float,
     """Async AP50 of ``run`` (over its ``n`` frames; None: the frames it recorded) had each frame
     the edge answered ``dropped`` been detected by the model of ``dets`` ``after`` seconds after
     that answer; and how many such frames there were."""
-    from zoffload.lab.eval.detection import detection_metrics
-
-    with open(run / "frames.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
+    frames, persons, period = load_run(run)
+    if not frames:
         raise ValueError(f"{run}: frames.csv has no frame")
-    z = dict(np.load(run / "detections.npz"))
-    seqs, counts = list(z["seqs"]), list(z["counts"])
-    boxes, scores = [z["boxes"].reshape(-1, 4)], [z["scores"]]
     changed = 0
-    for r in rows:
-        if r["status"] == "edge_dropped" and r["result"] and int(r["seq"]) < len(dets):
-            seq = int(r["seq"])
-            b, sc = dets[seq]
-            r["status"], r["result"] = "local_done", str(float(r["result"]) + after)
-            seqs.append(seq)
-            counts.append(len(sc))
-            boxes.append(b.reshape(-1, 4))
-            scores.append(sc)
+    for f in frames:
+        if f["status"] == "edge_dropped" and isinstance(f["result"], float) and int(f["seq"]) < len(dets):
+            f["status"], f["result"] = "local_done", f["result"] + after
+            persons[int(f["seq"])] = dets[int(f["seq"])]
             changed += 1
-    tmp = Path(tempfile.mkdtemp(prefix="zoffload-whatif-"))
-    try:
-        with open(tmp / "frames.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-        z.update(seqs=np.array(seqs), counts=np.array(counts), boxes=np.concatenate(boxes),
-                 scores=np.concatenate(scores))
-        np.savez(tmp / "detections.npz", **z)
-        return detection_metrics(tmp, gt, n)["ap50_async"], changed
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    return score_frames(frames, persons, period, gt, n)["ap50_async"], changed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -95,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="detect experiment runs on these clips: their scores and the dropped-frames what-if")
     p.add_argument("--after", type=float, nargs="+", default=[0.15, 0.3],
                    help="what-if: seconds from the drop answer to the robot's result (default 0.15 0.3)")
-    p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "zoffload" / "sim",
+    p.add_argument("--cache", type=Path, default=CACHE,
                    help="folder of the cached detections (shared with the simulation)")
     args = p.parse_args(argv)
     from zoffload.sources.images import CocoClipSource, open_image_source
@@ -104,18 +80,23 @@ def main(argv: list[str] | None = None) -> int:
     if not isinstance(source, CocoClipSource):
         p.error(f"{args.images}: needs clips with ground truth (coco-clips)")
     n = len(source) if args.frames is None else min(args.frames, len(source))
-    tag = args.images.replace(":", "_").replace("/", "_").replace("@", "_")
     lags = range(args.max_lag + 1)
     print(f"{args.images}: {n} frames, every frame detected, scored k camera periods late (AP50 %)")
     print("| model | " + " | ".join(f"k = {k}" for k in lags) + " |")
     print("| --- | " + " | ".join("---" for _ in lags) + " |")
-    for model in args.models:
-        dets = clip_detections(source, model, n, args.cache / f"{tag}-{model}.npz")[:n]
-        print(f"| {model} | " + " | ".join(f"{late_ap(dets, source.boxes, k):.1f}" for k in lags) + " |")
-    if args.runs:
-        from zoffload.lab.eval.detection import detection_metrics
+    loaded: dict[str, list[Detections]] = {}
 
-        local = clip_detections(source, MODELS[1], n, args.cache / f"{tag}-{MODELS[1]}.npz")[:n]
+    def detections(model: str) -> list[Detections]:  # each model's read (or computed) once
+        if model not in loaded:
+            cache = detections_cache(args.images, model, args.cache)
+            loaded[model] = clip_detections(source, model, n, cache)[:n]
+        return loaded[model]
+
+    for model in args.models:
+        aps = [late_ap(detections(model), source.boxes, k) for k in lags]
+        print(f"| {model} | " + " | ".join(f"{ap:.1f}" for ap in aps) + " |")
+    if args.runs:
+        local = detections(MODELS[1])
         print("\n| run | async AP50 | processed | mean lateness (frames) | edge dropped | "
               + " | ".join(f"dropped ones by {MODELS[1]} {1000 * a:.0f} ms later" for a in args.after) + " |")
         print("| --- | --- | --- | --- | --- | " + " | ".join("---" for _ in args.after) + " |")

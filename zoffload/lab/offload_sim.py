@@ -86,6 +86,15 @@ class _Edge:
     busy: tuple[int, float, float, float] | None = None  # (seq, finish, service, queued)
 
 
+CACHE = Path.home() / ".cache" / "zoffload" / "sim"  # the clips' detections, computed once
+
+
+def detections_cache(images: str, model: str, cache: Path = CACHE) -> Path:
+    """Where ``model``'s detections on the clips named ``images`` are cached."""
+    tag = images.replace(":", "_").replace("/", "_").replace("@", "_")
+    return cache / f"{tag}-{model}.npz"
+
+
 def clip_detections(source: Any, model: str, n: int, cache: Path | None = None) -> list[tuple[np.ndarray,
                                                                                                 np.ndarray]]:
     """Person boxes and scores of ``model`` on the first ``n`` frames of ``source`` (cached)."""
@@ -286,10 +295,9 @@ def simulate(strategy: str, trace: str, images: str = "coco-clips@tune", n: int 
     if not isinstance(source, CocoClipSource):
         raise ValueError(f"{images}: the simulation needs clips with ground truth (coco-clips)")
     n = min(n, len(source))
-    cache = cache or Path.home() / ".cache" / "zoffload" / "sim"
-    tag = images.replace(":", "_").replace("/", "_").replace("@", "_")
-    dets = {"local": clip_detections(source, "nanodet-m", n, cache / f"{tag}-nanodet-m.npz"),
-            "edge": clip_detections(source, "picodet-s", n, cache / f"{tag}-picodet-s.npz")}
+    cache = cache or CACHE
+    dets = {"local": clip_detections(source, "nanodet-m", n, detections_cache(images, "nanodet-m", cache)),
+            "edge": clip_detections(source, "picodet-s", n, detections_cache(images, "picodet-s", cache))}
     cfg = SimConfig(quota=quota, seed=seed)
     link = constant(1e5, name="none") if trace == "none" else load_trace(trace)
     strat = make_strategy(strategy, **params)  # type: ignore[arg-type]

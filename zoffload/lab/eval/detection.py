@@ -57,9 +57,18 @@ def camera_schedule(frames: list[dict[str, Any]], period: float) -> float:
 
 def detection_metrics(run: Path, gt_boxes: Any, n_frames: int | None = None) -> dict[str, float]:
     """Async and sync AP50 of a run; ``gt_boxes(index)`` gives a frame's person boxes."""
-    frames = load_frames(run)
-    persons = load_persons(run)
-    period = float(np.load(run / "detections.npz")["period"])
+    return score_frames(*load_run(run), gt_boxes, n_frames)
+
+
+def load_run(run: Path) -> tuple[list[dict[str, Any]], dict[int, tuple[np.ndarray, np.ndarray]], float]:
+    """A run's frames (``load_frames``), its processed frames' persons (``load_persons``) and the
+    camera period."""
+    return load_frames(run), load_persons(run), float(np.load(run / "detections.npz")["period"])
+
+
+def score_frames(frames: list[dict[str, Any]], persons: dict[int, tuple[np.ndarray, np.ndarray]],
+                 period: float, gt_boxes: Any, n_frames: int | None = None) -> dict[str, float]:
+    """``detection_metrics`` of a run already read (``load_run``)."""
     start = camera_schedule(frames, period)
     by_seq = {int(f["seq"]): f for f in frames}
     n = n_frames if n_frames is not None else (max(by_seq) + 1 if by_seq else 0)
