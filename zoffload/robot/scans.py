@@ -77,6 +77,7 @@ class StreamOptions:
     ack_timeout: float = 1.0
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
     window_edge_time: bool = True  # ... plus the scans the edge holds (ScanLedger.window)
+    window_path: bool = True  # ... and at least the scans the path's round trip holds
     out_dir: Path | None = None  # records retire onto disk here as the run goes (robot/scanlog.py)
     keep_records: int = 4096  # records held in memory
     # The fleet (RobotFleetSettings)
@@ -123,6 +124,7 @@ class ScanStreamer:
         self._sensor: SensorThread | None = None
         self._booked_overwrites = 0
         self._skipped: deque[int] = deque()  # deliberately skipped since the last scan sent
+        self._window_max = 0  # the widest window of unanswered scans so far (metrics)
         self._coded: deque[tuple[int, int]] = deque(maxlen=5)  # (bytes, points) of compressed scans
         self._refused_at = -math.inf
         self._cpu = {"process_s": 0.0, "sensor_s": 0.0, "wall_s": 0.0}
@@ -265,8 +267,9 @@ class ScanStreamer:
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
             self.ledger.on_route(target, time.monotonic())
-            window = (self.ledger.window(self.opts.max_in_flight, self._period())
-                      if self.opts.window_edge_time else self.opts.max_in_flight)
+            window = self.ledger.window(self.opts.max_in_flight, self._period(),
+                                        edge=self.opts.window_edge_time, path=self.opts.window_path)
+            self._window_max = max(self._window_max, window)
             full = bool(window) and self.ledger.in_flight_here >= window
         if full:
             # in a stall the policy skips it on purpose (announced); else the window drops it
@@ -279,7 +282,7 @@ class ScanStreamer:
                     return bridged
                 base = self.opts.max_in_flight
                 record["reason"] = (f"window full: {self.ledger.in_flight_here} unanswered "
-                                    f"({base} + {window - base} at the edge)")
+                                    f"({base} + {window - base} for the edge's queue and the path)")
                 self.ledger.drop_at_source(reading.seq, "window", record)
                 self.ledger.window_drops += 1
                 return bridged
@@ -501,6 +504,11 @@ class ScanStreamer:
                                   "used": self._period()}
         # a replay more than a period behind restarts its clock (no burst of overdue scans)
         out["sensor_resynced"] = self._sensor.resynced if self._sensor is not None else 0
+        # the window of unanswered scans: its base, the widest it grew (the edge's queue, the
+        # path's round trip) and the quickest round trip of the current route
+        rtt_min = self.ledger.route_rtt_min
+        out["window"] = {"base": self.opts.max_in_flight, "max": self._window_max,
+                         "route_rtt_min_s": rtt_min if math.isfinite(rtt_min) else None}
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
         if self.fleet_state is not None:
             out["fleet"] = self._fleet_metrics(totals, balance)
@@ -576,7 +584,7 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
         quant_fraction=settings.quant_fraction, zstd_level=settings.zstd_level,
         ack_timeout=settings.ack_timeout, max_in_flight=settings.max_in_flight,
-        window_edge_time=settings.window_edge_time,
+        window_edge_time=settings.window_edge_time, window_path=settings.window_path,
         out_dir=Path(settings.out_dir) if settings.out_dir else None,
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
         local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,

@@ -499,6 +499,11 @@ class RobotSettings(_Strict):
     window_edge_time: bool = Field(
         default=True, description="widen the window of unanswered scans by the edge's time per scan"
     )
+    # A long path (250 ms each way) holds 6-7 scans at 10 Hz with no queue on it: the window is
+    # at least the route's quickest round trip in periods, rounded up, plus one (at most 4 x base)
+    window_path: bool = Field(
+        default=True, description="widen the window of unanswered scans to the path's quickest round trip"
+    )
     status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
     heap_trim_period: float = Field(
         default=60.0, ge=0,

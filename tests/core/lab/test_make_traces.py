@@ -43,3 +43,14 @@ def test_csv_round_trip() -> None:
     rows = [(0.0, 10.0, 20.0, 30.0, 5.0, 0), (1.5, 0.0, 0.0, 0.0, 0.0, 1)]
     t = parse_trace(to_csv(rows, "a comment"))
     assert t.times == (0.0, 1.5) and t.states[1].outage and t.states[0].down_mbps == 20.0
+
+
+def test_satellite_has_a_half_second_round_trip_and_rain_fades() -> None:
+    for name in ("satellite", "satellite-heldout"):
+        t = load_trace(name)
+        assert not any(s.outage for s in t.states) and t.duration >= 85
+        assert all(260 <= s.delay_ms <= 360 and 5 <= s.jitter_ms <= 20 for s in t.states)
+        assert all(0.4 <= s.up_mbps <= 20.0 and 20.0 <= s.down_mbps <= 50.0 for s in t.states)
+        up = np.array([s.up_mbps for s in t.states])
+        steps = up[1:] / up[:-1]  # a fade takes 60-85 % of the rate at once and gives it back
+        assert ((steps < 0.5) | (steps > 2.0)).sum() >= 3

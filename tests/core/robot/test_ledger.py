@@ -149,22 +149,72 @@ def test_the_window_widens_by_the_edge_s_time_per_scan() -> None:
     led = ScanLedger()
     assert led.window(3, 0.1) == 3  # nothing measured yet
     acked_with(led, [(0.01, 0.02)] * 5)
-    assert led.window(3, 0.1) == 3  # 30 ms at the edge: under half a period
+    assert led.window(3, 0.1, path=False) == 3  # 30 ms at the edge: under half a period
     acked_with(led, [(0.03, 0.06)] * 6)  # 90 ms: the median moves to it
-    assert led.window(3, 0.1) == 4
+    assert led.window(3, 0.1, path=False) == 4
     assert led.window(0, 0.1) == 0  # no window stays no window
     acked_with(led, [(0.2, 0.1)] * 20)  # 300 ms, 3 periods
-    assert led.window(3, 0.1) == 6 and led.window(2, 0.1) == 4  # at most doubled
+    assert led.window(3, 0.1, path=False) == 6 and led.window(2, 0.1, path=False) == 4  # at most doubled
     acked_with(led, [(5.0, 5.0)] * 20)  # an overloaded (or lying) edge gains no more
-    assert led.window(3, 0.1) == 6
+    assert led.window(3, 0.1, path=False) == 6
+    assert led.window(3, 0.1, edge=False, path=False) == 3
+
+
+def acked_after(led: ScanLedger, rtts: list[float], route: tuple[str, int] | None = None) -> None:
+    """Scans sent a period apart, each answered ``rtt`` later by a quick edge (1 + 20 ms)."""
+    for rtt in rtts:
+        seq = len(led.records)
+        led.produced()
+        if route is not None:
+            led.on_route(route, now=0.1 * seq)
+        rec = {"edge": route[0], "epoch": route[1]} if route else {}
+        led.handed_off(seq, rec)
+        led.published(seq, send_stamp=0.1 * seq, record=rec)
+        assert led.on_ack(edge_ack(seq, 0.1 * seq, 0.001, 0.02), recv_stamp=0.1 * seq + rtt) == "acked"
+
+
+def test_a_long_path_widens_the_window_to_its_round_trip_and_a_queue_on_it_does_not() -> None:
+    led = ScanLedger()
+    acked_after(led, [0.55] * 4, route=("edgeA", 1))  # 250 ms each way + the edge
+    assert led.window(3, 0.1) == 3  # four acks: not yet a measure of the path
+    acked_after(led, [0.56], route=("edgeA", 1))
+    assert led.window(3, 0.1) == 7  # 0.55 s: 5.5 periods, rounded up, plus one
+    assert led.window(3, 0.1, path=False) == 3 and led.window(3, 0.2) == 4
+    # a queue builds on the link: the round trips grow, the window does not follow them
+    acked_after(led, [0.9, 1.2, 1.5, 1.8] * 10, route=("edgeA", 1))
+    assert led.window(3, 0.1) == 7
+    # a short path (cellular, 30-70 ms each way) changes nothing: at most 2 periods round trip
+    short = ScanLedger()
+    acked_after(short, [0.08, 0.19, 0.12, 0.15, 0.09, 0.3], route=("edgeA", 1))
+    assert short.window(3, 0.1) == 3 and short.window(3, 0.1, edge=False) == 3
+    # a move to another edge measures its path anew
+    acked_after(led, [0.05] * 5, route=("edgeB", 2))
+    assert led.route_acks == 5 and led.window(3, 0.1) == 3
+    # a path of seconds (or an edge holding its acks) gains at most 4 x the base
+    slow = ScanLedger()
+    acked_after(slow, [3.0] * 6)
+    assert slow.window(3, 0.1) == 12 and slow.window(2, 0.1) == 8
+
+
+def test_late_acks_of_the_old_route_do_not_measure_the_new_path() -> None:
+    led = ScanLedger()
+    led.on_route(("edgeA", 1), now=0.0)
+    for seq in range(6):
+        led.produced()
+        led.handed_off(seq, {"edge": "edgeA", "epoch": 1})
+        led.published(seq, send_stamp=0.1 * seq, record={})
+    led.on_route(("edgeB", 2), now=0.6)
+    for seq in range(6):  # A answers after the move, 0.8 s after each scan
+        assert led.on_ack(edge_ack(seq, 0.1 * seq, 0.001, 0.02), recv_stamp=0.1 * seq + 0.8) == "acked"
+    assert led.route_acks == 0 and led.window(3, 0.1) == 3
 
 
 def test_only_scans_the_edge_registered_count_for_the_window() -> None:
     led = ScanLedger()
     acked_with(led, [(0.3, 0.1)] * 10, status="dropped")  # dropped by the edge: no registration time
-    assert led.window(3, 0.1) == 3
+    assert led.window(3, 0.1, path=False) == 3
     acked_with(led, [(math.nan, 0.1)] * 10)  # no queue time reported
-    assert led.window(3, 0.1) == 3
+    assert led.window(3, 0.1, path=False) == 3
 
 
 def test_after_a_move_the_old_edges_unanswered_scans_neither_fill_the_window_nor_make_a_silence() -> None:

@@ -105,7 +105,9 @@ OTHER_THREAD = textwrap.dedent("""
         signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # delivered to this thread
 
     threading.Thread(target=raise_here, daemon=True).start()
-    threading.Timer(10.0, stop.event.set).start()
+    watchdog = threading.Timer(10.0, stop.event.set)
+    watchdog.daemon = True  # the process ends with its wait, not 10 s later
+    watchdog.start()
     t0 = time.monotonic()
     stop.wait()
     print(f"{time.monotonic() - t0:.2f} {stop._count}", flush=True)

@@ -252,7 +252,7 @@ def test_the_window_leaves_the_scans_the_edge_holds_off_the_link(free_port: int,
     with slow_edge(free_port, answer_after=0.45, edge_time=0.4):
         robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=40, rate_hz=10,
                                         scale_policy="fixed", scan_coding="f32",
-                                        window_edge_time=edge_time_window,
+                                        window_edge_time=edge_time_window, window_path=False,
                                         fleet=RobotFleetSettings(attach=False)))
     m = robot.metrics()
     window = m["dropped_source"].get("window", 0)
@@ -261,9 +261,31 @@ def test_the_window_leaves_the_scans_the_edge_holds_off_the_link(free_port: int,
         assert window <= 4, m["dropped_source"]  # the first ones only, before an ack came
         assert m["balance"]["acked"] >= 34, m["balance"]
         held = [r for r in robot.ledger.records.values() if r.get("status") == "source:window"]
-        assert all("3 + 0 at the edge" in r["reason"] for r in held)  # ... with nothing measured
+        assert all("3 + 0 for the edge" in r["reason"] for r in held)  # ... with nothing measured
     else:
         assert window >= 8, m["dropped_source"]  # the window of 3, full with scans on the edge
+
+
+@pytest.mark.parametrize("path_window", [False, True])
+def test_a_long_path_gets_a_window_of_its_round_trip(free_port: int, path_window: bool) -> None:
+    # a quick edge (10 ms) answering 0.55 s after each scan, as over 250 ms each way: 5-6 scans
+    # are on the path at 10 Hz with no queue anywhere, and a window of 3 held back 43 % of them
+    with slow_edge(free_port, answer_after=0.55, edge_time=0.01):
+        robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=50, rate_hz=10,
+                                        scale_policy="fixed", scan_coding="f32", window_path=path_window,
+                                        fleet=RobotFleetSettings(attach=False)))
+    m = robot.metrics()
+    window = m["dropped_source"].get("window", 0)
+    assert m["balanced"], m["balance"]
+    if path_window:
+        assert window <= 9, m["dropped_source"]  # the first second only, before 5 acks measured it
+        assert m["balance"]["acked"] >= 40, m["balance"]
+        held = [r for r in robot.ledger.records.values() if r.get("status") == "source:window"]
+        assert all(r["seq"] < 15 for r in held), [r["seq"] for r in held]
+        assert m["window"]["max"] >= 7 and m["window"]["route_rtt_min_s"] >= 0.55, m["window"]
+    else:
+        assert window >= 15, m["dropped_source"]
+        assert m["window"]["max"] == 3, m["window"]
 
 
 def test_scans_the_window_holds_back_in_a_stall_are_skipped_and_announced(free_port: int) -> None:

@@ -10,10 +10,17 @@
   the cell, and while it lasts the access point's queue adds 20-60 ms of delay and 10-25 ms of
   jitter (5-15 ms and 3-8 ms between bursts).
 
+* ``satellite``: a geostationary satellite terminal's return link (VSAT): one-way delay 260-320
+  ms (the 36,000 km hop and the modem), jitter 5-20 ms, an uplink of 3-20 Mbps (a random walk in
+  log space, one step a second) with a downlink of 20-50 Mbps, and a rain fade every 20-40 s that
+  cuts the uplink to 15-40 % for 2-6 s (the modem's adaptive coding) and adds 10-40 ms of delay.
+  A round trip of at least 0.52 s: 5-6 scans on the path at 10 Hz with no queue anywhere.
+
 Each trace is written for two seeds: seed 1 (``cellular``, ``wifi-congested``), which the policy
 may be developed against, and seed 2 (``cellular-heldout``, ``wifi-congested-heldout``), which is
 for final tables only and must never be used to tune anything; the cellular uplink also for seeds
-3-5 (``cellular-3`` ...), more development cases. Regenerate (the files are
+3-5 (``cellular-3`` ...), more development cases; the satellite link for seeds 1 (``satellite``)
+and 2 (``satellite-heldout``, held out likewise). Regenerate (the files are
 committed beside this script; the same seeds give the same files):
 
     python -m zoffload.lab.link.make_traces [--out zoffload/lab/link/traces]
@@ -81,6 +88,31 @@ def wifi_congested(seed: int, duration: float = DURATION) -> list[Row]:
     return rows
 
 
+def satellite(seed: int, duration: float = DURATION) -> list[Row]:
+    rng = np.random.default_rng(seed)
+    lo, hi = math.log(3.0), math.log(20.0)
+    log_rate = rng.uniform(math.log(6.0), hi)
+    delay, jitter = rng.uniform(260, 320), rng.uniform(5, 20)
+    next_fade = rng.uniform(10.0, 30.0)
+    fade_until, fade_share, fade_delay = -1.0, 1.0, 0.0
+    rows: list[Row] = []
+    t = 0.0
+    while t < duration:
+        if t >= next_fade:
+            fade_until = t + float(rng.uniform(2.0, 6.0))
+            fade_share, fade_delay = float(rng.uniform(0.15, 0.4)), float(rng.uniform(10, 40))
+            next_fade = t + rng.uniform(20.0, 40.0)
+        fading = t < fade_until
+        up = math.exp(log_rate) * (fade_share if fading else 1.0)
+        down = float(np.clip(2.5 * math.exp(log_rate), 20.0, 50.0))
+        rows.append((t, up, down, delay + (fade_delay if fading else 0.0), jitter, 0))
+        log_rate = _reflect(log_rate + rng.normal(0, 0.25), lo, hi)
+        delay = _reflect(delay + rng.normal(0, 5), 260, 320)
+        jitter = _reflect(jitter + rng.normal(0, 2.5), 5, 20)
+        t += 1.0
+    return rows
+
+
 def _reflect(x: float, lo: float, hi: float) -> float:
     """``x`` folded back into [lo, hi] (a random walk that bounces off its limits)."""
     while not lo <= x <= hi:
@@ -106,6 +138,11 @@ TRACES: dict[str, tuple[Callable[[int], list[Row]], int, str]] = {
     "cellular-3": (cellular, 3, "cellular uplink, seed 3 (development)"),
     "cellular-4": (cellular, 4, "cellular uplink, seed 4 (development)"),
     "cellular-5": (cellular, 5, "cellular uplink, seed 5 (development)"),
+    # a long path: the window of unanswered scans must hold a round trip of half a second
+    "satellite": (satellite, 1, "geostationary satellite return link, seed 1 (development)"),
+    "satellite-heldout": (satellite, 2,
+                          "geostationary satellite return link, seed 2: HELD OUT, final tables only, "
+                          "never tuned on"),
 }
 
 
