@@ -79,7 +79,9 @@ def _daemon_parser(p: argparse.ArgumentParser, model: type[BaseModel], spellings
         f"(e.g. {example}; lists in YAML: {env_prefix}ZENOH__CONNECT=[tcp/10.0.0.2:7447]; null unsets), "
         "then its flag. Unknown keys and variables are errors."
     )
-    p.add_argument("--settings", metavar="FILE", help="YAML settings file: the flags' keys, sections nested")
+    p.add_argument("--settings", metavar="FILE",
+                   help="YAML settings file: the settings' keys (as in a run's *_config.yaml: rate_hz, "
+                   "out_dir, fleet: {attach: ...}), sections nested")
     p.add_argument("--log-level", default=None, metavar="LEVEL",
                    help="DEBUG, INFO, WARNING (env ZOFFLOAD_LOG)")
     program = model.__name__.removesuffix("Settings").lower()

@@ -62,6 +62,18 @@ def build_parser() -> argparse.ArgumentParser:
                 lab.add_train_policy, lab.add_link, daemons.add_router, view.add_view, hardening.add_certs,
                 hardening.add_soak):
         add(sub)
+    return exact_flags(p)
+
+
+def exact_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Turn off argparse's prefix matching, here and in every sub-command: ``--mapper.queu 7``
+    was taken as ``--mapper.queue`` (a typo silently accepted, where a wrong key in a file or a
+    variable is an error)."""
+    p.allow_abbrev = False
+    for action in p._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in set(action.choices.values()):
+                exact_flags(child)
     return p
 
 
@@ -71,12 +83,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def robot_main(argv: Sequence[str] | None = None) -> int:
-    args = robot_parser().parse_args(argv)
+    args = exact_flags(robot_parser()).parse_args(argv)
     return _guard(run_robot, args)
 
 
 def edge_main(argv: Sequence[str] | None = None) -> int:
-    args = edge_parser().parse_args(argv)
+    args = exact_flags(edge_parser()).parse_args(argv)
     return _guard(run_edge, args)
 
 

@@ -119,7 +119,7 @@ def resolve(name: str, path: str | None = None, url: str | None = None,
         if dest.is_file() and sha256_of(dest) == s.sha256:
             return dest
         return download(url, dest, s.sha256)
-    where = ", ".join(tried) if tried else "no model directory (set ZOFFLOAD_MODELS)"
+    where = ", ".join(tried) if tried else "no model directory (set ZOFFLOAD_MODELS, or ZOFFLOAD_DATA)"
     raise ModelError(
         f"detector {name}: {s.file} not found (looked in {where}). Put the file there, set "
         f"ZOFFLOAD_MODELS to its folder, configure its path, or give a download URL (official "

@@ -21,6 +21,7 @@ calls it under its own lock.
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
@@ -28,6 +29,9 @@ import numpy as np
 
 from zoffload.protocol import wire
 
+# A robot proposes its wall clock in ms (at least its last epoch + 1); an epoch further ahead of the
+# edge's clock is refused: remembered, it would lock the robot's real attaches out as stale
+EPOCH_AHEAD_MS = 86_400_000
 EPOCHS_KEPT = 4096  # robots whose last epoch is remembered after their session went
 LATE_MIN = 10  # scans answered in the window before their late share says anything
 
@@ -135,6 +139,8 @@ class Fleet:
             return "draining"
         if epoch <= self.epochs.get(robot, 0):
             return "stale epoch"
+        if epoch > time.time() * 1e3 + EPOCH_AHEAD_MS:  # kept, it would make every real attach stale
+            return "epoch more than a day ahead of this edge's clock (is the robot's clock right?)"
         capacity = self.effective_capacity(now)
         others = robots - (1 if has_session else 0)
         if others >= capacity:

@@ -284,11 +284,17 @@ class MappingService:
                 item = rs.queue.popleft() if rs.queue else None
             start = time.perf_counter()
             if item is not None:
-                self._register(rs, item)
+                try:
+                    self._register(rs, item)
+                except Exception as exc:  # (its checkpoint): the worker goes on with the next scan
+                    self._worker_error(rs, "scan", exc)
             with self._lock:
                 final, rs.final_pending = rs.final_pending, False
             if final:
-                self._send_final(rs)
+                try:
+                    self._send_final(rs)
+                except Exception as exc:
+                    self._worker_error(rs, "final checkpoint", exc)
             with self._lock:
                 self._busy += time.perf_counter() - start
                 if (rs.queue or rs.final_pending) and not rs.closed:
@@ -299,6 +305,16 @@ class MappingService:
                 closed = rs.closed
             if closed:
                 self._close(rs)
+
+    def _worker_error(self, rs: RobotSession, what: str, exc: Exception) -> None:
+        """Something a robot sent broke a worker's step outside registration (a checkpoint of a
+        map too far out for its grid, say): counted and logged; the worker lives on. Before, the
+        exception ended the worker thread and the robot's later scans were never answered."""
+        self._count(rs, "worker_errors")
+        n = rs.counters["worker_errors"]
+        if n <= 10 or n % 1000 == 0:
+            log.warning("robot %s: %s failed on the mapping worker (%d so far): %s", rs.robot, what, n,
+                        str(exc)[:200], exc_info=n == 1)
 
     def _register(self, rs: RobotSession, item: Queued) -> None:
         scan = item.scan

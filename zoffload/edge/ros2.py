@@ -23,6 +23,7 @@ is the sensor's pose at the robot's first registered scan.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -161,13 +162,22 @@ class Ros2Service:
 
     # Capture stamps: the robot's clock when its sensor delivered the scan or frame
     def _on_capture(self, sample: zenoh.Sample) -> None:
-        kind = self.keys.last_chunk(str(sample.key_expr))
-        msg = wire.decode(sample.payload.to_bytes())
-        if not isinstance(msg, (wire.Scan, wire.Frame)):
-            self.drops.drop("unexpected", f"a {msg.TYPE} message on {sample.key_expr}")
+        # Three fields peeked, the points or pixels stepped over (this runs for every robot's
+        # scans and frames, other edges' too); the robot named in the payload must be the key's
+        key = str(sample.key_expr)
+        kind = self.keys.last_chunk(key)
+        msg_type = wire.Scan.TYPE if kind == "scan" else wire.Frame.TYPE
+        got = wire.peek_fields(sample.payload.to_bytes(), msg_type, ("robot", "seq", "capture_stamp"))
+        robot, seq, stamp = (got or {}).get("robot"), (got or {}).get("seq"), (got or {}).get("capture_stamp")
+        if not (isinstance(robot, str) and isinstance(seq, int) and isinstance(stamp, (int, float))
+                and not isinstance(seq, bool) and math.isfinite(stamp)):
+            self.drops.drop("malformed", f"a {kind} on {key[:100]} without robot, seq and capture stamp")
+            return
+        if robot != self.keys.robot_of(key):
+            self.drops.drop("foreign", f"{kind}: robot {robot[:40]!r} in the payload of {key[:100]}")
             return
         with self._lock:
-            self._stamps[(msg.robot, kind, msg.seq)] = msg.capture_stamp
+            self._stamps[(robot, kind, seq)] = float(stamp)
             while len(self._stamps) > STAMPS_KEPT:
                 self._stamps.popitem(last=False)
 

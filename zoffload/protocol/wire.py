@@ -69,11 +69,19 @@ class Limits:
     max_pixels: int = 7680 * 4320  # pixels of one camera frame (8K)
     max_detections: int = 10_000  # boxes in one detections message
     max_map_points: int = 100_000_000  # points in a map reply or checkpoint
+    # points a checkpoint's coded local map may declare (KISS-ICP's local map at half its voxel:
+    # ~0.05-0.2M); a declared count is also at most CODED_POINTS_PER_BYTE a byte of its payload,
+    # so a kilobyte of compressed zeros cannot make a receiver allocate gigabytes
+    max_checkpoint_points: int = 2_000_000
     max_status_values: int = 1024  # entries of a status message
     max_bytes: int = 512 * 1024 * 1024  # one encoded message
 
 
 DEFAULT_LIMITS = Limits()
+# A q16d point is 6 bytes before Zstandard; real local maps compress 2-10x (0.6 points a byte on
+# noisy ground), a perfectly flat synthetic grid 260x (43). A declared count beyond this many points
+# a byte of payload is a decompression bomb, not a map.
+CODED_POINTS_PER_BYTE = 128
 
 
 @dataclass(frozen=True)
@@ -403,8 +411,11 @@ class Checkpoint(Message):
             return self.points
         from zoffload.protocol.coding import CodingError, decode_q16d
 
-        if self.n_points > limits.max_map_points:
-            raise WireError(f"checkpoint of {self.n_points} points (at most {limits.max_map_points})")
+        if self.n_points > limits.max_checkpoint_points:
+            raise WireError(f"checkpoint of {self.n_points} points (at most {limits.max_checkpoint_points})")
+        if self.n_points > CODED_POINTS_PER_BYTE * max(len(self.packed), 1):
+            raise WireError(f"checkpoint of {self.n_points} points in {len(self.packed)} bytes (at most "
+                            f"{CODED_POINTS_PER_BYTE} points a byte)")
         assert self.origin is not None  # (__post_init__)
         if not np.all(np.abs(self.origin) <= ORIGIN_MAX):
             raise WireError(f"checkpoint origin {self.origin.tolist()} beyond {ORIGIN_MAX:g} m")
@@ -608,6 +619,15 @@ def _check_value(kind: str, name: str, f: dataclasses.Field[Any], value: Any, li
 PEEK_KEYS = 64  # a message map has fewer fields than this; a hostile one is not read further
 
 
+def _unique_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    """A map with each key once: msgpack keeps the last of a repeated key, and ``peek_fields``
+    (which reads a scan's route cheaply) the first; a message saying two things is refused."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise ValueError("a key repeated in a map")
+    return out
+
+
 def peek_fields(data: bytes | bytearray | memoryview, msg_type: str, names: tuple[str, ...]
                 ) -> dict[str, Any] | None:
     """Some top-level fields of an encoded message, read without decoding it: every other value
@@ -663,7 +683,7 @@ def _decode(data: bytes | bytearray | memoryview, expect: type[Message] | None, 
         # pre-allocate what a forged length prefix claims
         n = len(data)
         obj = msgpack.unpackb(data, raw=False, strict_map_key=True, max_str_len=n, max_bin_len=n,
-                              max_array_len=n, max_map_len=n, max_ext_len=0)
+                              max_array_len=n, max_map_len=n, max_ext_len=0, object_pairs_hook=_unique_keys)
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise WireError(f"not msgpack: {exc.__class__.__name__}: {str(exc)[:200]}") from exc
     if not isinstance(obj, dict):

@@ -90,7 +90,7 @@ class Assignment:
         info = self.edges.get(edge)
         if info is None:
             return False  # status of an edge whose token we do not hold: not live
-        info.capacity, info.robots, info.draining = int(capacity), int(robots), draining
+        info.capacity, info.robots, info.draining = _whole(capacity), _whole(robots), draining
         info.reads, info.heard = reads, True
         if draining and edge == self.edge:
             if self.state != ATTACHED:
@@ -155,3 +155,9 @@ class Assignment:
     def current(self, edge: str, epoch: int) -> bool:
         """Whether an answer (ack, checkpoint) comes from our edge under our epoch."""
         return self.state == ATTACHED and edge == self.edge and epoch == self.epoch
+
+
+def _whole(x: float) -> int:
+    """A count an edge reports, as an int: NaN or inf (the codec lets a status value be either) is
+    0, not a ValueError that would lose the rest of the status (its draining flag)."""
+    return int(min(max(x, 0.0), 1e9)) if math.isfinite(x) else 0

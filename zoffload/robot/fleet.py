@@ -115,6 +115,11 @@ class FleetState:
                 return False
             return self._moved("draining", now, was)
 
+    def expects(self, cp: wire.Checkpoint) -> bool:
+        """Whether ``cp`` is of this robot's current assignment (edge and epoch)."""
+        with self._lock:
+            return cp.robot == self.robot and self.assignment.current(cp.edge, cp.epoch)
+
     def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
         """Keep the newest checkpoint of the current assignment; returns "kept", "stale" (another
         edge or epoch), "older", or "final" (kept, and the robot moves)."""
@@ -386,7 +391,8 @@ class FleetLink:
     def _on_checkpoint(self, sample: zenoh.Sample) -> None:
         try:
             cp = wire.decode(sample.payload.to_bytes(), expect=wire.Checkpoint)
-            cp.cloud()  # a coded local map must decode now, not when an outage needs it
+            if self.state.expects(cp):  # only then is its map worth decoding (counted stale below)
+                cp.cloud()  # a coded local map must decode now, not when an outage needs it
         except wire.WireError as exc:
             self.drops.drop("malformed_checkpoint", str(exc))
             return

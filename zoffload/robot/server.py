@@ -74,8 +74,10 @@ class RobotServer:
             p.start(self.session, self.presence)
         log.info("robot %s up: %s", s.robot_id, ", ".join(p.name for p in self.pipelines))
         if s.wait_edge > 0 and not self.presence.wait(s.wait_edge):
-            log.warning("no edge after %.1f s; running anyway (scans dropped, frames detected locally "
-                        "until one appears)", s.wait_edge)
+            log.warning("no edge after %.1f s (connecting to %s); running anyway (scans registered on the "
+                        "robot where local odometry is on, else dropped; frames detected locally) until one "
+                        "appears: check the address and that zoffload-edge listens there",
+                        s.wait_edge, ", ".join(s.zenoh.connect) or "peers found by scouting")
 
     # Main loop
     def main_loop(self) -> None:

@@ -9,6 +9,7 @@ empty variable counts as unset. A variable under the prefix that names no settin
 
 from __future__ import annotations
 
+import difflib
 import functools
 import os
 import types
@@ -90,6 +91,24 @@ def _settings_class(cls: type[BaseModel]) -> type[BaseSettings]:
     return cast("type[BaseSettings]", mixed)
 
 
+def _near(model: type[BaseModel], key: str) -> str:
+    """`` (did you mean 'x'?)`` for a key close to one of ``model``'s settings, else ``""``."""
+    close = difflib.get_close_matches(key.lower(), list(model.model_fields), n=1, cutoff=0.6)
+    if not close and (prefixed := [f for f in model.model_fields if f.startswith(key.lower())]):
+        close = prefixed[:1]  # a flag's short spelling used as a key: rate -> rate_hz
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _no_such_setting(cls: type[BaseModel], loc: tuple[Any, ...]) -> str:
+    """The message for an unknown key at ``loc``: what the section has close to it."""
+    model: type[BaseModel] | None = cls
+    for key in loc[:-1]:
+        field = model.model_fields.get(str(key)) if model is not None else None
+        model = section_model(field) if field is not None else None
+    hint = _near(model, str(loc[-1])) if model is not None else ""
+    return f"no such setting{hint}"
+
+
 def _check_variable_names(cls: type[BaseModel], prefix: str, environ: Mapping[str, str]) -> None:
     """A variable under the prefix must name a setting: pydantic-settings skips the others, and a
     typo silently ignored is a classic field bug."""
@@ -105,7 +124,8 @@ def _check_variable_names(cls: type[BaseModel], prefix: str, environ: Mapping[st
             field = model.model_fields.get(key)
             if field is None:
                 path = ".".join(keys[: depth + 1])
-                raise ConfigError(f"environment variable {name}: {cls.__name__} has no setting {path!r}")
+                raise ConfigError(f"environment variable {name}: {cls.__name__} has no setting {path!r}"
+                                  f"{_near(model, key)}")
             model = section_model(field)
 
 
@@ -153,7 +173,9 @@ def load_settings(
         return cls.model_validate(data)
     except ValidationError as exc:
         problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '(top)'}: {err['msg']}" for err in exc.errors()
+            f"{'.'.join(str(p) for p in err['loc']) or '(top)'}: "
+            f"{_no_such_setting(cls, err['loc']) if err['type'] == 'extra_forbidden' else err['msg']}"
+            for err in exc.errors()
         )
         where = f" (from {file})" if file else ""
         raise ConfigError(f"invalid {cls.__name__}{where}: {problems}") from exc

@@ -151,7 +151,18 @@ def test_mistakes_are_named() -> None:
         robot_settings(robot_parser().parse_args(["--robot-id", "a/b"]), environ={})
 
 
-@pytest.mark.parametrize("argv", [["--voxle", "0.1"], ["--replay", "sideways"], ["--rate", "fast"]])
+def test_mistakes_in_a_file_or_a_variable_say_what_was_meant(tmp_path: Path) -> None:
+    f = tmp_path / "robot.yaml"
+    f.write_text("rate: 5\nfleet:\n  atach: true\n")
+    with pytest.raises(ConfigError, match=r"fleet.atach: no such setting \(did you mean 'attach'\?\)") as err:
+        robot_settings(robot_parser().parse_args(["--settings", str(f)]), environ={})
+    assert "rate: no such setting (did you mean 'rate_hz'?)" in str(err.value)
+    with pytest.raises(ConfigError, match="did you mean 'voxel'"):
+        robot_settings(robot_parser().parse_args([]), environ={"ZOFFLOAD_ROBOT__VOXLE": "0.1"})
+
+
+@pytest.mark.parametrize("argv", [["--voxle", "0.1"], ["--replay", "sideways"], ["--rate", "fast"],
+                                  ["--voxel-rang", "0.1", "0.2"]])
 def test_bad_flags_exit_with_the_config_code(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as err:
         robot_main(argv)
@@ -177,3 +188,13 @@ def test_help_reads_from_the_models(capsys: pytest.CaptureFixture[str]) -> None:
         text = " ".join(capsys.readouterr().out.split())
         for w in words:
             assert w in text
+
+
+def test_a_flag_cut_short_is_not_taken_for_a_longer_one(capsys: pytest.CaptureFixture[str]) -> None:
+    """Was: ``zoffload-edge --mapper.queu 7`` set ``mapper.queue`` (argparse's prefix matching)."""
+    for run, argv in ((edge_main, ["--mapper.queu", "7"]), (robot_main, ["--voxel-rang", "0.1", "0.2"])):
+        with pytest.raises(SystemExit) as err:
+            run(argv)
+        assert err.value.code == 2 and argv[0] in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["edge", "--mapper.queu", "7"])

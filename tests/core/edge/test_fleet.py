@@ -3,6 +3,8 @@ routed, shedding from the busy-share window, drain bookkeeping, attach checks, t
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from zoffload.edge.fleet import MAP, OTHER, PEER_FRESH, REFUSE, Fleet, Peers, check_attach, peek_route
@@ -27,6 +29,16 @@ def test_attach_needs_a_newer_epoch_room_and_no_drain() -> None:
     assert "r1" not in f.attached and f.decide("r1", 3, 1, False, 1.0) == "stale epoch"  # epoch kept
     f.begin_drain(2.0)
     assert f.decide("r1", 9, 0, False, 2.0) == "draining"
+
+
+def test_an_epoch_from_the_future_is_refused_not_remembered() -> None:
+    """Was: an attach with epoch 2**63 - 1 was accepted and its epoch kept after the session,
+    so every later attach of that robot (its wall clock in ms) was refused as stale."""
+    f = fleet()
+    now_ms = int(time.time() * 1e3)
+    assert "ahead" in f.decide("r1", 2**63 - 1, 0, False, 0.0)
+    assert f.decide("r1", now_ms + 3_600_000, 0, False, 0.0) == ""  # an hour of clock skew is fine
+    assert f.decide("r1", now_ms, 0, False, 0.0) == "" and "r1" not in f.epochs
 
 
 def test_scans_are_routed_by_edge_and_epoch() -> None:

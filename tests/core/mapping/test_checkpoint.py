@@ -89,4 +89,4 @@ def test_a_coded_map_that_does_not_decode_is_refused() -> None:
     with pytest.raises(wire.WireError, match="float32 points beside"):
         replace(cp, points=np.zeros((3, 3), np.float32))
     with pytest.raises(wire.WireError, match="at most"):
-        cp.cloud(wire.Limits(max_map_points=cp.n_points - 1))
+        cp.cloud(wire.Limits(max_checkpoint_points=cp.n_points - 1))

@@ -292,3 +292,51 @@ def test_a_scan_carries_the_robots_prior_as_version_5_and_only_whole(monkeypatch
     assert wire.decode(wire.encode(plain), expect=wire.Scan).seq == 3
     with pytest.raises(wire.WireError, match="codec version 5"):
         wire.decode(wire.encode(with_prior), expect=wire.Scan)
+
+
+def _zero_checkpoint(n: int) -> wire.Checkpoint:
+    """A checkpoint declaring ``n`` points whose coded map is compressed zeros (~1 kB for 2M)."""
+    blob = bytes([1]) + zstandard.ZstdCompressor(level=19, write_content_size=True).compress(b"\0" * (6 * n))
+    eye = np.eye(4)
+    return wire.Checkpoint(robot="r1", edge="e1", epoch=1, seq=5, stamp=0.0, voxel_size=0.5, max_range=100.0,
+                           min_range=0.0, max_points_per_voxel=20, pose=eye, delta=eye,
+                           points=np.zeros((0, 3), np.float32), quant_step=0.01, n_points=n,
+                           origin=np.zeros(3), packed=np.frombuffer(blob, np.uint8))
+
+
+def test_a_checkpoint_cannot_declare_more_points_than_its_bytes_can_hold() -> None:
+    """Was: a 1 kB checkpoint declaring 2M points decoded into +113 MB (100M allowed: ~6 GB);
+    a receiver decodes every checkpoint (the robot, the edge on an attach)."""
+    bomb = wire.decode(wire.encode(_zero_checkpoint(2_000_000)), expect=wire.Checkpoint)
+    r0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(wire.WireError, match="points a byte"):
+        bomb.cloud()
+    with pytest.raises(wire.WireError, match="points a byte"):
+        bomb.plain()  # what an edge reads an attach's checkpoint with
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - r0 < 20_000  # kB: nothing allocated
+    over = dataclasses.replace(_zero_checkpoint(100), n_points=wire.DEFAULT_LIMITS.max_checkpoint_points + 1)
+    with pytest.raises(wire.WireError, match="at most"):
+        over.cloud()
+    # a flat synthetic floor on an exact grid, the most compressible map there is, still decodes
+    from zoffload.protocol.coding import encode_q16d
+
+    cells = np.stack(np.meshgrid(np.arange(200), np.arange(200), indexing="ij"), -1).reshape(-1, 2) * 0.25
+    floor = np.c_[cells, np.zeros(len(cells))].astype(np.float32)
+    origin, step, packed = encode_q16d(floor, 0.01, level=1, widen=True)
+    flat = dataclasses.replace(_zero_checkpoint(1), quant_step=step, n_points=len(floor), origin=origin,
+                               packed=np.frombuffer(packed, np.uint8))
+    assert np.allclose(wire.decode(wire.encode(flat), expect=wire.Checkpoint).cloud(), floor, atol=step)
+
+
+def test_a_key_repeated_in_a_message_is_refused() -> None:
+    """Was: msgpack kept the last of a repeated key, the edge's cheap route peek the first: a scan
+    peeked as (e1, 7) decoded as (e2, 99) and was mapped under an epoch it was not routed by."""
+    scan = wire.Scan(robot="r1", seq=1, send_stamp=1.0, capture_stamp=1.0, voxel=0.1, voxel_max=0.1,
+                     max_range=50.0, n_raw=1, points=np.zeros((1, 3), np.float32), edge="e1", epoch=7)
+    fields = list(msgpack.unpackb(wire.encode(scan), raw=False).items())
+    packer = msgpack.Packer(use_bin_type=True)
+    for extra in ([("robot", "r1")] * 64 + [("edge", "e2"), ("epoch", 99)], [("seq", 2)]):
+        items = fields + extra
+        raw = packer.pack_map_header(len(items)) + b"".join(packer.pack(k) + packer.pack(v) for k, v in items)
+        with pytest.raises(wire.WireError, match="repeated"):
+            wire.decode(raw, expect=wire.Scan)

@@ -65,3 +65,13 @@ def test_draining_edge_sends_its_robot_elsewhere() -> None:
     a.edge_status(other, capacity=4, robots=1, draining=False)
     assert a.next_candidate(0.0) == other
     assert not a.edge_status("unknown", 4, 0, False)  # status without a token: not live
+
+
+def test_a_status_with_nan_or_inf_counts_still_says_it_drains() -> None:
+    """Was: int(NaN) raised in the status callback, and the draining flag was lost with it."""
+    a = Assignment("r1")
+    a.edge_present("e1")
+    a.attached("e1", a.begin_attach("e1", 1))
+    assert a.edge_status("e1", capacity=float("nan"), robots=float("inf"), draining=True)
+    info = a.edges["e1"]
+    assert info.capacity == 0 and info.robots == 0 and info.draining

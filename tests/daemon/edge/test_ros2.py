@@ -155,6 +155,12 @@ def test_only_this_edges_answers_count_and_bad_ones_are_drops(service: tuple, fr
     with client(free_port) as other:  # another edge, or a forger, on the edge's network
         other.put(KEYS.scan("intruder"), scan("intruder", 0, 1700000000.0))
         wait_for(lambda: ("intruder", "scan", 0) in svc._stamps, what="the other session connected")
+        # a scan on robot1's key naming robot2 (was: set robot2's odometry stamp), and garbage
+        other.put(KEYS.scan("robot1"), scan("robot2", 5, 9.9e11))
+        other.put(KEYS.scan("robot1"), b"\x93garbage")
+        wait_for(lambda: svc.status().get("ros2.drop.foreign") == 1.0
+                 and svc.status().get("ros2.drop.malformed") == 1.0, what="forged, broken scans dropped")
+        assert ("robot2", "scan", 5) not in svc._stamps
         other.put(KEYS.scan_ack("intruder"), ack("intruder", 0, np.eye(4)))  # not this edge's: ignored
         edge.put(KEYS.scan_ack("robot2"), b"\x93garbage")
         edge.put(KEYS.scan_ack("robot3"), ack("robot3", 0, np.full((4, 4), np.nan), status="error"))
