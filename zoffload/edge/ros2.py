@@ -35,6 +35,7 @@ import numpy as np
 import zenoh
 
 from zoffload.protocol import wire
+from zoffload.protocol.intake import robot_in_key
 from zoffload.protocol.keys import Keys
 from zoffload.ros2 import messages
 from zoffload.ros2.keys import DEFAULT_QOS, KEEP_LAST, LATCHED, RELIABLE, VOLATILE, Qos
@@ -166,15 +167,18 @@ class Ros2Service:
         # scans and frames, other edges' too); the robot named in the payload must be the key's
         key = str(sample.key_expr)
         kind = self.keys.last_chunk(key)
+        if (key_robot := robot_in_key(sample, self.keys, self.drops, kind)) is None:
+            return
         msg_type = wire.Scan.TYPE if kind == "scan" else wire.Frame.TYPE
-        got = wire.peek_fields(sample.payload.to_bytes(), msg_type, ("robot", "seq", "capture_stamp"))
-        robot, seq, stamp = (got or {}).get("robot"), (got or {}).get("seq"), (got or {}).get("capture_stamp")
+        got = wire.peek_fields(sample.payload.to_bytes(), msg_type, ("robot", "seq", "capture_stamp")) or {}
+        robot, seq, stamp = got.get("robot"), got.get("seq"), got.get("capture_stamp")
         if not (isinstance(robot, str) and isinstance(seq, int) and isinstance(stamp, (int, float))
                 and not isinstance(seq, bool) and math.isfinite(stamp)):
             self.drops.drop("malformed", f"a {kind} on {key[:100]} without robot, seq and capture stamp")
             return
-        if robot != self.keys.robot_of(key):
-            self.drops.drop("foreign", f"{kind}: robot {robot[:40]!r} in the payload of {key[:100]}")
+        if robot != key_robot:
+            self.drops.drop("foreign", f"{kind}: robot {robot[:40]!r} in the payload, {key_robot!r} in the "
+                            "key")
             return
         with self._lock:
             self._stamps[(robot, kind, seq)] = float(stamp)

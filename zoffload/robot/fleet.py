@@ -118,13 +118,16 @@ class FleetState:
     def expects(self, cp: wire.Checkpoint) -> bool:
         """Whether ``cp`` is of this robot's current assignment (edge and epoch)."""
         with self._lock:
-            return cp.robot == self.robot and self.assignment.current(cp.edge, cp.epoch)
+            return self._expects(cp)
+
+    def _expects(self, cp: wire.Checkpoint) -> bool:  # (under the lock)
+        return cp.robot == self.robot and self.assignment.current(cp.edge, cp.epoch)
 
     def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
         """Keep the newest checkpoint of the current assignment; returns "kept", "stale" (another
         edge or epoch), "older", or "final" (kept, and the robot moves)."""
         with self._lock:
-            if cp.robot != self.robot or not self.assignment.current(cp.edge, cp.epoch):
+            if not self._expects(cp):
                 self.counters["checkpoints_stale"] += 1
                 return "stale"
             if self.checkpoint is not None and cp.seq < self.checkpoint.seq:
