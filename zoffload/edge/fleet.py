@@ -30,7 +30,8 @@ import numpy as np
 from zoffload.protocol import wire
 
 # A robot proposes its wall clock in ms (at least its last epoch + 1); an epoch further ahead of the
-# edge's clock is refused: remembered, it would lock the robot's real attaches out as stale
+# edge's clock is accepted (an edge without NTP or a real-time clock boots in 1970) but not remembered
+# after the robot's session: remembered, it would lock the robot's real attaches out as stale
 EPOCH_AHEAD_MS = 86_400_000
 EPOCHS_KEPT = 4096  # robots whose last epoch is remembered after their session went
 LATE_MIN = 10  # scans answered in the window before their late share says anything
@@ -139,8 +140,6 @@ class Fleet:
             return "draining"
         if epoch <= self.epochs.get(robot, 0):
             return "stale epoch"
-        if epoch > time.time() * 1e3 + EPOCH_AHEAD_MS:  # kept, it would make every real attach stale
-            return "epoch more than a day ahead of this edge's clock (is the robot's clock right?)"
         capacity = self.effective_capacity(now)
         others = robots - (1 if has_session else 0)
         if others >= capacity:
@@ -156,8 +155,17 @@ class Fleet:
             self.epochs.popitem(last=False)
 
     def forget(self, robot: str) -> None:
-        """The robot's session went (evicted): it is no longer attached (its epoch is kept)."""
+        """The robot's session went (evicted): it is no longer attached. Its epoch is kept unless it
+        is more than ``EPOCH_AHEAD_MS`` ahead of this edge's clock (see ``ahead``)."""
         self.attached.pop(robot, None)
+        if self.ahead(self.epochs.get(robot, 0)):
+            self.epochs.pop(robot, None)
+
+    @staticmethod
+    def ahead(epoch: int) -> bool:
+        """An epoch more than a day ahead of this edge's wall clock: the edge's clock or the robot's
+        is wrong (or the attach is hostile), so the epoch bars no later attach once its session goes."""
+        return epoch > time.time() * 1e3 + EPOCH_AHEAD_MS
 
     # Scans
     def route(self, robot: str, edge: str, epoch: int, now: float) -> Route:

@@ -384,6 +384,9 @@ class MappingService:
                 rs.final_pending = False
             self.counters["attach_refused" if detail else "attaches"] += 1
             robots, capacity = len(self.robots), self.fleet.effective_capacity(now)
+        if not detail and self.fleet.ahead(attach.epoch):
+            log.warning("attach of %s: its epoch %d (its wall clock in ms) is more than a day ahead of this "
+                        "edge's clock; is this edge's clock (NTP) or the robot's right?", robot, attach.epoch)
         log.info("attach of %s (epoch %d, checkpoint %s, %d local poses): %s", robot, attach.epoch,
                  f"seq {checkpoint.seq}" if checkpoint else "none", len(attach.local_seqs),
                  detail or "accepted")
@@ -417,6 +420,9 @@ class MappingService:
             # it took 36 ms per robot in the draining edge's worker, and the drains' moves took twice
             # as long (README, "Checkpoints")
             coded = entry is not None and entry.reads >= 6 and not final
+        # Counted as taken before it is: one that fails (a map too far out for its grid) is tried
+        # again after checkpoint_every scans, not on every scan
+        rs.checkpoint_epoch, rs.since_checkpoint = epoch, 0
         cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, resolution, final, coded)
         if cp is None:
             return False
@@ -433,7 +439,6 @@ class MappingService:
         except Exception as exc:  # the session is closing
             log.debug("checkpoint not published: %s", exc)
             return False
-        rs.checkpoint_epoch, rs.since_checkpoint = epoch, 0
         with self._lock:
             self.counters["final_checkpoints" if final else "checkpoints"] += 1
             self.counters["checkpoint_bytes"] = len(data)
@@ -447,17 +452,23 @@ class MappingService:
             entry = self.fleet.attached.get(rs.robot)
         if entry is None:
             return
-        if rs.mapper is not None:
-            self._continue(rs)
-            self._send_checkpoint(rs, entry.epoch, final=True)
-        elif rs.pending is not None and rs.pending.checkpoint is not None and self._session is not None:
-            # (float32, as every final: check_attach decoded the attach's coded map)
-            cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch, final=True)
-            self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
-                              congestion_control=zenoh.CongestionControl.BLOCK)
-            self._count(rs, "final_checkpoints")
-        with self._lock:
-            self.fleet.final_sent(rs.robot, time.monotonic())
+        try:
+            if rs.mapper is not None:
+                self._continue(rs)
+                self._send_checkpoint(rs, entry.epoch, final=True)
+            elif rs.pending is not None and rs.pending.checkpoint is not None and self._session is not None:
+                # (float32, as every final: check_attach decoded the attach's coded map)
+                cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch,
+                                         final=True)
+                self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
+                                  congestion_control=zenoh.CongestionControl.BLOCK)
+                self._count(rs, "final_checkpoints")
+        finally:
+            # Owed no longer, sent or not: one that failed (counted in worker_errors by the caller)
+            # left the robot owed for good, so a drain waited for it to move by itself and a shed
+            # robot was never refused; it moves without a checkpoint, as from a dead edge
+            with self._lock:
+                self.fleet.final_sent(rs.robot, time.monotonic())
         log.info("robot %s: final checkpoint sent", rs.robot)
 
     def _ask_final(self, robot: str) -> None:

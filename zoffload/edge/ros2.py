@@ -23,7 +23,6 @@ is the sensor's pose at the robot's first registered scan.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import OrderedDict
@@ -172,8 +171,10 @@ class Ros2Service:
         msg_type = wire.Scan.TYPE if kind == "scan" else wire.Frame.TYPE
         got = wire.peek_fields(sample.payload.to_bytes(), msg_type, ("robot", "seq", "capture_stamp")) or {}
         robot, seq, stamp = got.get("robot"), got.get("seq"), got.get("capture_stamp")
+        # (bool is an int to Python; the stamp in the bounds decode would hold it to)
         if not (isinstance(robot, str) and isinstance(seq, int) and isinstance(stamp, (int, float))
-                and not isinstance(seq, bool) and math.isfinite(stamp)):
+                and not isinstance(seq, bool) and not isinstance(stamp, bool)
+                and wire.STAMP.lo <= stamp <= wire.STAMP.hi):
             self.drops.drop("malformed", f"a {kind} on {key[:100]} without robot, seq and capture stamp")
             return
         if robot != key_robot:

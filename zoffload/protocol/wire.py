@@ -41,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar, cast, overload
 
@@ -619,9 +620,11 @@ def _check_value(kind: str, name: str, f: dataclasses.Field[Any], value: Any, li
 PEEK_KEYS = 64  # a message map has fewer fields than this; a hostile one is not read further
 
 
-def _unique_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+def _unique_keys(pairs: Iterable[tuple[Any, Any]]) -> dict[Any, Any]:
     """A map with each key once: msgpack keeps the last of a repeated key, and ``peek_fields``
-    (which reads a scan's route cheaply) the first; a message saying two things is refused."""
+    (which reads a scan's route cheaply) the first; a message saying two things is refused.
+    (msgpack's C extension passes a list, its pure-Python fallback a generator.)"""
+    pairs = list(pairs)
     out = dict(pairs)
     if len(out) != len(pairs):
         raise ValueError("a key repeated in a map")

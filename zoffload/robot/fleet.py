@@ -123,11 +123,13 @@ class FleetState:
     def _expects(self, cp: wire.Checkpoint) -> bool:  # (under the lock)
         return cp.robot == self.robot and self.assignment.current(cp.edge, cp.epoch)
 
-    def on_checkpoint(self, cp: wire.Checkpoint, now: float) -> str:
+    def on_checkpoint(self, cp: wire.Checkpoint, now: float, checked: bool = True) -> str:
         """Keep the newest checkpoint of the current assignment; returns "kept", "stale" (another
-        edge or epoch), "older", or "final" (kept, and the robot moves)."""
+        edge or epoch), "older", or "final" (kept, and the robot moves). ``checked``: whether its
+        coded map was decoded when it came (only for the assignment then: one of an assignment
+        made since is stale, not kept unchecked)."""
         with self._lock:
-            if not self._expects(cp):
+            if not checked or not self._expects(cp):
                 self.counters["checkpoints_stale"] += 1
                 return "stale"
             if self.checkpoint is not None and cp.seq < self.checkpoint.seq:
@@ -394,12 +396,13 @@ class FleetLink:
     def _on_checkpoint(self, sample: zenoh.Sample) -> None:
         try:
             cp = wire.decode(sample.payload.to_bytes(), expect=wire.Checkpoint)
-            if self.state.expects(cp):  # only then is its map worth decoding (counted stale below)
+            checked = self.state.expects(cp)  # only then is its map worth decoding (counted stale below)
+            if checked:
                 cp.cloud()  # a coded local map must decode now, not when an outage needs it
         except wire.WireError as exc:
             self.drops.drop("malformed_checkpoint", str(exc))
             return
-        if self.state.on_checkpoint(cp, time.monotonic()) == "final":
+        if self.state.on_checkpoint(cp, time.monotonic(), checked) == "final":
             log.info("final checkpoint from edge %s (scan %d): moving", cp.edge, cp.seq)
             self._wake.set()
 

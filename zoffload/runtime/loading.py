@@ -94,7 +94,7 @@ def _settings_class(cls: type[BaseModel]) -> type[BaseSettings]:
 def _near(model: type[BaseModel], key: str) -> str:
     """`` (did you mean 'x'?)`` for a key close to one of ``model``'s settings, else ``""``."""
     close = difflib.get_close_matches(key.lower(), list(model.model_fields), n=1, cutoff=0.6)
-    if not close and (prefixed := [f for f in model.model_fields if f.startswith(key.lower())]):
+    if not close and key and (prefixed := [f for f in model.model_fields if f.startswith(key.lower())]):
         close = prefixed[:1]  # a flag's short spelling used as a key: rate -> rate_hz
     return f" (did you mean {close[0]!r}?)" if close else ""
 

@@ -159,6 +159,10 @@ def test_mistakes_in_a_file_or_a_variable_say_what_was_meant(tmp_path: Path) -> 
     assert "rate: no such setting (did you mean 'rate_hz'?)" in str(err.value)
     with pytest.raises(ConfigError, match="did you mean 'voxel'"):
         robot_settings(robot_parser().parse_args([]), environ={"ZOFFLOAD_ROBOT__VOXLE": "0.1"})
+    f.write_text('"": 5\n')  # an empty key: no hint (every setting starts with "")
+    with pytest.raises(ConfigError, match="no such setting") as err:
+        robot_settings(robot_parser().parse_args(["--settings", str(f)]), environ={})
+    assert "did you mean" not in str(err.value)
 
 
 @pytest.mark.parametrize("argv", [["--voxle", "0.1"], ["--replay", "sideways"], ["--rate", "fast"],

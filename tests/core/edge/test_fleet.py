@@ -4,6 +4,7 @@ routed, shedding from the busy-share window, drain bookkeeping, attach checks, t
 from __future__ import annotations
 
 import time
+from unittest import mock
 
 import numpy as np
 
@@ -31,14 +32,22 @@ def test_attach_needs_a_newer_epoch_room_and_no_drain() -> None:
     assert f.decide("r1", 9, 0, False, 2.0) == "draining"
 
 
-def test_an_epoch_from_the_future_is_refused_not_remembered() -> None:
-    """Was: an attach with epoch 2**63 - 1 was accepted and its epoch kept after the session,
-    so every later attach of that robot (its wall clock in ms) was refused as stale."""
+def test_an_epoch_from_the_future_is_accepted_and_forgotten_with_its_session() -> None:
+    """Was: an attach with epoch 2**63 - 1 was accepted and its epoch kept after the session, so
+    every later attach of that robot (its wall clock in ms) was refused as stale. Then refusing it
+    locked every robot out of an edge whose clock is wrong (booted in 1970, no NTP)."""
     f = fleet()
     now_ms = int(time.time() * 1e3)
-    assert "ahead" in f.decide("r1", 2**63 - 1, 0, False, 0.0)
-    assert f.decide("r1", now_ms + 3_600_000, 0, False, 0.0) == ""  # an hour of clock skew is fine
-    assert f.decide("r1", now_ms, 0, False, 0.0) == "" and "r1" not in f.epochs
+    assert f.decide("r1", 2**63 - 1, 0, False, 0.0) == ""
+    f.attach("r1", 2**63 - 1, 0.0)
+    f.forget("r1")
+    assert "r1" not in f.epochs and f.decide("r1", now_ms, 0, False, 1.0) == ""
+    f.attach("r1", now_ms + 3_600_000, 1.0)  # an hour of clock skew is remembered
+    f.forget("r1")
+    assert f.decide("r1", now_ms, 0, False, 2.0) == "stale epoch"
+    # an edge whose clock is 56 years behind takes a correctly-set robot's attach
+    with mock.patch.object(time, "time", return_value=0.0):
+        assert f.decide("r2", now_ms, 0, False, 3.0) == ""
 
 
 def test_scans_are_routed_by_edge_and_epoch() -> None:

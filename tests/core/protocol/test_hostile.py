@@ -340,3 +340,8 @@ def test_a_key_repeated_in_a_message_is_refused() -> None:
         raw = packer.pack_map_header(len(items)) + b"".join(packer.pack(k) + packer.pack(v) for k, v in items)
         with pytest.raises(wire.WireError, match="repeated"):
             wire.decode(raw, expect=wire.Scan)
+    # msgpack's pure-Python fallback (PyPy, MSGPACK_PUREPYTHON) hands the hook a generator, not a
+    # list (len() of it raised TypeError: every message refused)
+    assert wire._unique_keys(iter([("a", 1), ("b", 2)])) == {"a": 1, "b": 2}
+    with pytest.raises(ValueError, match="repeated"):
+        wire._unique_keys(iter([("a", 1), ("a", 2)]))

@@ -104,6 +104,8 @@ def test_only_the_current_assignment_gives_checkpoints_and_the_newest_wins() -> 
     assert f.on_checkpoint(checkpoint(edge, epoch - 1, 50), 1.0) == "stale"
     assert f.on_checkpoint(checkpoint("e9", epoch, 50), 1.0) == "stale"
     assert f.on_checkpoint(checkpoint(edge, epoch, 50, robot="r2"), 1.0) == "stale"
+    # one that came before this assignment was made (so its coded map was not decoded) is stale
+    assert f.on_checkpoint(checkpoint(edge, epoch, 30), 1.0, checked=False) == "stale"
     assert f.on_checkpoint(checkpoint(edge, epoch, 20), 1.0) == "kept"
     assert f.on_checkpoint(checkpoint(edge, epoch, 10), 1.0) == "older"
     assert f.checkpoint is not None and f.checkpoint.seq == 20

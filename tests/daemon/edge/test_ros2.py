@@ -9,6 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -158,9 +159,15 @@ def test_only_this_edges_answers_count_and_bad_ones_are_drops(service: tuple, fr
         # a scan on robot1's key naming robot2 (was: set robot2's odometry stamp), and garbage
         other.put(KEYS.scan("robot1"), scan("robot2", 5, 9.9e11))
         other.put(KEYS.scan("robot1"), b"\x93garbage")
+        # stamps the decode would refuse: a bool (an int to Python) and one past wire.STAMP
+        for seq, bad in ((6, True), (7, 1e13)):
+            fields = msgpack.unpackb(scan("robot1", seq, 1.0), raw=False)
+            fields["capture_stamp"] = bad
+            other.put(KEYS.scan("robot1"), msgpack.packb(fields, use_bin_type=True))
         wait_for(lambda: svc.status().get("ros2.drop.foreign") == 1.0
-                 and svc.status().get("ros2.drop.malformed") == 1.0, what="forged, broken scans dropped")
+                 and svc.status().get("ros2.drop.malformed") == 3.0, what="forged, broken scans dropped")
         assert ("robot2", "scan", 5) not in svc._stamps
+        assert not any(k[0] == "robot1" and k[2] in (6, 7) for k in svc._stamps)
         other.put(KEYS.scan_ack("intruder"), ack("intruder", 0, np.eye(4)))  # not this edge's: ignored
         edge.put(KEYS.scan_ack("robot2"), b"\x93garbage")
         edge.put(KEYS.scan_ack("robot3"), ack("robot3", 0, np.full((4, 4), np.nan), status="error"))
