@@ -64,7 +64,7 @@ def through_edge(scans: list[np.ndarray]) -> tuple[list[float], list[float], lis
     s.liveliness().declare_subscriber(keys.any_edge_alive(), lambda x: up.append(1), history=True)
     while not up:
         time.sleep(0.01)
-    s.declare_subscriber(keys.scan_ack("bench"), on_ack)
+    s.declare_subscriber(keys.scan_acks("bench"), on_ack)
     pub = s.declare_publisher(keys.scan("bench"))
     walls = []
     for seq, pts in enumerate(scans):

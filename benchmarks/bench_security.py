@@ -59,8 +59,8 @@ def echo(mode: str, port: int, certs: Path, edge_ms: float) -> None:
     """The edge side (child process): a small ack for every scan, after ``edge_ms`` of stand-in
     registration, until stdin closes."""
     s = open_session(settings(mode, port, certs, "edge1"))
-    ack = s.declare_publisher(KEYS.scan_ack("robot1"), congestion_control=zenoh.CongestionControl.DROP,
-                              express=True)
+    ack = s.declare_publisher(KEYS.scan_ack("robot1", "edge1"),
+                              congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def on_scan(sample: zenoh.Sample) -> None:
         if edge_ms:
@@ -98,7 +98,7 @@ def connect(z: ZenohSettings, timeout: float = 30.0) -> zenoh.Session:
 def measure(s: zenoh.Session, size: int, rtt_n: int, seconds: float) -> tuple[float, float, float]:
     """(RTT median ms, RTT p90 ms, scans/s with the window) for one payload size."""
     got = threading.Semaphore(0)
-    sub = s.declare_subscriber(KEYS.scan_ack("robot1"), lambda _s: got.release())
+    sub = s.declare_subscriber(KEYS.scan_acks("robot1"), lambda _s: got.release())
     pub = s.declare_publisher(KEYS.scan("robot1"), congestion_control=zenoh.CongestionControl.BLOCK_FIRST)
     payload = bytes(size)
     rtts = []
@@ -118,7 +118,7 @@ def measure(s: zenoh.Session, size: int, rtt_n: int, seconds: float) -> tuple[fl
         done += 1
         window.release()
 
-    sub = s.declare_subscriber(KEYS.scan_ack("robot1"), on_ack)
+    sub = s.declare_subscriber(KEYS.scan_acks("robot1"), on_ack)
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         if window.acquire(timeout=5):

@@ -68,8 +68,8 @@ def test_attach_continue_refuse_and_drain_on_sigterm(free_port: int, tmp_path: P
         proc = edge(s, free_port, tmp_path, "--map-dir", str(tmp_path / "maps"),
                     "--fleet.drain-timeout", "20")
         try:
-            acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
-            cps = Inbox(s, KEYS.checkpoint("r1"), wire.Checkpoint)
+            acks = Inbox(s, KEYS.scan_acks("r1"), wire.ScanAck)
+            cps = Inbox(s, KEYS.checkpoints("r1"), wire.Checkpoint)
             status = Inbox(s, KEYS.edge_status("edge1"), wire.Status)
             reply = attach(s, "r1", 2, wire.encode(cp))
             assert reply.accepted and (reply.robots, reply.capacity) == (1, 1), reply

@@ -127,7 +127,7 @@ def run_robot_campaign(tmp: Path, port: int, n: int, camera: bool) -> None:
         def answer(sample: zenoh.Sample) -> None:  # the honest edge: one ok ack per real scan
             nonlocal real_acks
             scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
-            s.put(KEYS.scan_ack(scan.robot), wire.encode(wire.ScanAck(
+            s.put(KEYS.scan_ack(scan.robot, "edge1"), wire.encode(wire.ScanAck(
                 robot=scan.robot, seq=scan.seq, send_stamp=scan.send_stamp, status="ok", interarrival=0.1,
                 queue_time=0.0, proc_time=0.001, icp_time=0.001, map_points=1, keypoints=1, sigma=0.1,
                 pose=np.eye(4), edge="edge1")), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -144,8 +144,8 @@ def run_robot_campaign(tmp: Path, port: int, n: int, camera: bool) -> None:
                      tmp / "robot.log")
         wait_for(lambda: real_acks >= 5, 60, "the robot streaming")
         block = zenoh.CongestionControl.BLOCK
-        ack_pub = s.declare_publisher(KEYS.scan_ack("robot1"), congestion_control=block)
-        det_pub = s.declare_publisher(KEYS.detections("robot1"), congestion_control=block)
+        ack_pub = s.declare_publisher(KEYS.scan_ack("robot1", "edge1"), congestion_control=block)
+        det_pub = s.declare_publisher(KEYS.detections("robot1", "edge1"), congestion_control=block)
         status_pub = s.declare_publisher(KEYS.edge_status("edge1"), congestion_control=block)
         for payload in corpus(4, n, kinds=("ack",)):
             ack_pub.put(payload)

@@ -190,7 +190,7 @@ def test_a_small_jpeg_claiming_a_huge_image_is_answered_without_decoding(edge: E
                                      encoding="jpeg", width=w, height=h, data=data))
               for k, (w, h) in enumerate([(8, 8), (65_500, 65_500), (1000, 1000)])]
     got: list[wire.Detections] = []
-    sub = edge.session.declare_subscriber(KEYS.detections("camera1"), lambda s: got.append(
+    sub = edge.session.declare_subscriber(KEYS.detections_to("camera1"), lambda s: got.append(
         wire.decode(s.payload.to_bytes(), expect=wire.Detections)))
     t0 = time.monotonic()
     assert edge.case("829-byte JPEG", frames, "camera1", key="frame") <= PEAK_MB

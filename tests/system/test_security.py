@@ -4,6 +4,8 @@ certificates; the test's sessions as attackers holding a robot's identity, or no
 
 from __future__ import annotations
 
+import csv
+import dataclasses
 import json
 import threading
 import time
@@ -96,7 +98,7 @@ def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
         attacker = open_session(d.settings("robot1"))
         victim = open_session(d.settings("robot2"))
         got: list[bytes] = []
-        victim.declare_subscriber(KEYS.scan_ack("robot2"), lambda s: got.append(s.payload.to_bytes()))
+        victim.declare_subscriber(KEYS.scan_acks("robot2"), lambda s: got.append(s.payload.to_bytes()))
         # (a session sees its own puts locally: the eavesdropper is a session of its own)
         spy = open_session(d.settings("robot1"))
         stolen: list[str] = []
@@ -108,7 +110,7 @@ def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
                           voxel_max=0.07, max_range=40.0, n_raw=10, points=np.zeros((10, 3), np.float32))
         for seq in range(20):
             attacker.put(KEYS.scan("robot2"), wire.encode(scan2))
-            attacker.put(KEYS.scan_ack("robot2"), forged_ack("robot2", seq, 1.0))
+            attacker.put(KEYS.scan_ack("robot2", "edge1"), forged_ack("robot2", seq, 1.0))
             attacker.put(KEYS.edge_status("edge1"), b"forged")
         # a genuine robot2 scan in a fresh session shows the path is open for robot2 itself
         victim.put(KEYS.scan("robot2"), wire.encode(scan2))
@@ -146,7 +148,8 @@ def test_forged_edge_token_and_acks_book_nothing_without_an_edge(free_port: int,
 
         def echo(sample: zenoh.Sample) -> None:  # would answer every scan it overhears
             scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
-            attacker.put(KEYS.scan_ack(scan.robot), forged_ack(scan.robot, scan.seq, scan.send_stamp))
+            attacker.put(KEYS.scan_ack(scan.robot, "edge1"),
+                         forged_ack(scan.robot, scan.seq, scan.send_stamp))
             echoed.set()
 
         attacker.declare_subscriber(KEYS.all_scans(), echo)
@@ -154,7 +157,8 @@ def test_forged_edge_token_and_acks_book_nothing_without_an_edge(free_port: int,
         def blind() -> None:  # and acks guessed seqs blindly
             seq = 0
             while not stop_blind.is_set():
-                attacker.put(KEYS.scan_ack("robot2"), forged_ack("robot2", seq % 60, time.monotonic()))
+                attacker.put(KEYS.scan_ack("robot2", "edge1"),
+                             forged_ack("robot2", seq % 60, time.monotonic()))
                 seq += 1
                 time.sleep(0.01)
 
@@ -243,7 +247,7 @@ def test_two_linked_routers_carry_a_robot_and_an_edge_and_keep_forgeries_out(
         victim = open_session(d.settings("robot2"))
         sessions += [attacker, rogue_edge, victim]
         got: list[bytes] = []
-        victim.declare_subscriber(KEYS.scan_ack("robot2"), lambda s: got.append(s.payload.to_bytes()))
+        victim.declare_subscriber(KEYS.scan_acks("robot2"), lambda s: got.append(s.payload.to_bytes()))
         statuses: list[bytes] = []  # edge1's status as it arrives, raw: a forged one would show here
         monitor.declare_subscriber(KEYS.edge_status("edge1"), lambda s: statuses.append(s.payload.to_bytes()))
         scan = wire.Scan(robot="robot2", seq=0, send_stamp=1.0, capture_stamp=1.0, voxel=0.05,
@@ -304,4 +308,50 @@ def test_an_edge_sees_the_other_edges_status_and_liveliness_through_the_acl(free
     finally:
         for session in sessions:
             session.close()
+        assert d.stop() == 0
+
+
+def test_an_authorised_edge_cannot_answer_in_another_edges_name(free_port: int, tmp_path: Path) -> None:
+    """Was: the ACL let every edge identity put acks and checkpoints for every robot on one key, and
+    the robot checked only the fields an edge echoes, so a compromised edge2 that overheard robot1's
+    scans fed it poses in edge1's name. Now an edge puts answers only under its own id (the router
+    refuses edge1's key to edge2) and the robot drops an answer whose payload names another edge than
+    its key (counted ``foreign_ack`` / ``foreign_checkpoint``)."""
+    d = deploy(tmp_path, free_port, ["robot1"], ["edge1", "edge2"])
+    procs: list[Proc] = []
+    forged = {"edge1_key": 0, "own_key": 0}
+    try:
+        attacker = open_session(d.settings("edge2"))  # edge2's real identity, compromised
+
+        def forge(sample: zenoh.Sample) -> None:  # answers every robot1 scan it overhears as edge1
+            scan = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)
+            ack = wire.encode(dataclasses.replace(
+                wire.decode(forged_ack(scan.robot, scan.seq, scan.send_stamp), expect=wire.ScanAck),
+                epoch=scan.epoch, map_points=777_777))
+            attacker.put(KEYS.scan_ack(scan.robot, "edge1"), ack)  # refused by the router
+            forged["edge1_key"] += 1
+            attacker.put(KEYS.scan_ack(scan.robot, "edge2"), ack)  # reaches robot1, which drops it
+            cp = wire.Checkpoint(robot=scan.robot, edge="edge1", epoch=scan.epoch, seq=scan.seq,
+                                 stamp=scan.capture_stamp, voxel_size=0.4, max_range=40.0, min_range=0.0,
+                                 max_points_per_voxel=20, pose=np.eye(4), delta=np.eye(4),
+                                 points=np.zeros((10, 3), np.float32))
+            attacker.put(KEYS.checkpoint(scan.robot, "edge2"), wire.encode(cp))
+            forged["own_key"] += 1
+
+        sub = attacker.declare_subscriber(KEYS.all_scans(), forge)
+        monitor = open_session(d.settings("monitor"))
+        _, metrics = robot1_mapped_by_edge1(d, tmp_path, monitor, procs)
+        sub.undeclare()
+        assert forged["own_key"] >= 20, forged  # it overheard and answered robot1's scans
+        assert metrics["balance"]["acked"] >= 25  # edge1's own answers still count
+        rows = list(csv.DictReader((tmp_path / "robot" / "robot_scans.csv").open()))
+        assert not [r for r in rows if r["map_points"] == "777777"]  # no forged ack booked
+        drops = metrics["drops"]
+        assert drops.get("foreign_ack", 0) >= 20, drops  # those on edge2's key, dropped by the robot
+        assert drops.get("foreign_ack", 0) <= forged["own_key"], drops  # none on edge1's key came through
+        for s in (attacker, monitor):
+            s.close()
+    finally:
+        for p in reversed(procs):
+            p.sigint()
         assert d.stop() == 0

@@ -302,8 +302,8 @@ def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir:
                                        boxes=np.zeros((0, 4), np.float32), scores=np.zeros(0, np.float32),
                                        classes=np.zeros(0, np.int32))
             time.sleep(0.5)
-            s.put(KEYS.detections("robot1"), wire.encode(stray))
-            s.put(KEYS.detections("robot1"), b"garbage")
+            s.put(KEYS.detections("robot1", "x"), wire.encode(stray))
+            s.put(KEYS.detections("robot1", "x"), b"garbage")
             assert robot.wait(120) == 0, robot.text()
         finally:
             edge.sigint()
@@ -336,7 +336,7 @@ def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int
 
     with running_edge(settings) as edge, client(free_port) as s:
         wait_token(s, KEYS.edge_alive("edge1"))
-        s.declare_subscriber(KEYS.detections("r1"), on_det)
+        s.declare_subscriber(KEYS.detections_to("r1"), on_det)
         pub = s.declare_publisher(KEYS.frame("r1"))
         time.sleep(0.3)
         pub.put(b"\x00not msgpack")
@@ -374,7 +374,7 @@ def test_one_edge_detector_serves_several_robots(free_port: int, models_dir: Pat
     with running_edge(settings) as edge, client(free_port) as s:
         wait_token(s, KEYS.edge_alive("edge1"))
         for r in got:
-            s.declare_subscriber(KEYS.detections(r), collect(r))
+            s.declare_subscriber(KEYS.detections_to(r), collect(r))
         pubs = {r: s.declare_publisher(KEYS.frame(r)) for r in got}
         time.sleep(0.3)
         for seq in range(5):

@@ -53,7 +53,7 @@ from zoffload.detect.detector import Detections, Detector
 from zoffload.edge.admission import Admission
 from zoffload.protocol import wire
 from zoffload.protocol.intake import robot_in_key
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
@@ -163,7 +163,7 @@ class DetectorService:
             raise ValueError(f"serve must be 'newest' or 'oldest', not {serve!r}")
         self.detector = detector
         self.keys = keys
-        self.edge_id = edge_id
+        self.edge_id = check_id(edge_id, "edge id")  # its answers go under it
         self.queue_len = queue
         self.batch = batch
         self.serve = serve
@@ -210,7 +210,7 @@ class DetectorService:
         pub = self._pubs.get(robot)
         if pub is None:
             assert self._session is not None, "frames arrive only after start()"
-            pub = self._session.declare_publisher(self.keys.detections(robot), express=True,
+            pub = self._session.declare_publisher(self.keys.detections(robot, self.edge_id), express=True,
                                                   congestion_control=zenoh.CongestionControl.DROP)
             self._pubs[robot] = pub
         return pub
@@ -274,7 +274,7 @@ class DetectorService:
         except wire.WireError:
             return
         if frame.robot == robot:  # Detections has no "refused" status: an error that says so
-            self._session.put(self.keys.detections(robot),
+            self._session.put(self.keys.detections(robot, self.edge_id),
                               wire.encode(self._answer(frame, "error", f"refused: {why}", arrival=arrival)),
                               congestion_control=zenoh.CongestionControl.DROP, express=True)
 
@@ -373,7 +373,7 @@ class DetectorService:
         try:
             if not self.admission.is_admitted(p.frame.robot):  # evicted meanwhile: no publisher again
                 assert self._session is not None
-                self._session.put(self.keys.detections(p.frame.robot), wire.encode(msg),
+                self._session.put(self.keys.detections(p.frame.robot, self.edge_id), wire.encode(msg),
                                   congestion_control=zenoh.CongestionControl.DROP, express=True)
                 return
             with self._cond:

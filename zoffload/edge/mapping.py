@@ -53,7 +53,7 @@ from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, Queued, R
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, edge_token, robot_in_key
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.session import undeclare
 
@@ -69,7 +69,7 @@ class MappingService:
     name = "mapping"
 
     def __init__(self, keys: Keys, make_mapper: MapperFactory | None, queue: int = 2,
-                 map_dir: Path | None = None, map_format: str = "ply", edge_id: str = "",
+                 map_dir: Path | None = None, map_format: str = "ply", edge_id: str = "edge1",
                  workers: int | None = None, admission: Admission | None = None,
                  limits: wire.Limits = wire.DEFAULT_LIMITS, fleet: Fleet | None = None,
                  checkpoint_every: int = 10, checkpoint_resolution: float | None = None,
@@ -79,7 +79,7 @@ class MappingService:
         self.queue_len = queue
         self.map_dir = map_dir
         self.map_format = map_format
-        self.edge_id = edge_id
+        self.edge_id = check_id(edge_id, "edge id")  # its answers go under it
         self.admission = admission or Admission()
         self.limits = limits
         self.fleet = fleet or Fleet(edge_id, capacity=self.admission.max_robots)
@@ -255,14 +255,15 @@ class MappingService:
             return
         ack = _ack_message(robot, scan.seq, scan.send_stamp, "refused", self.edge_id, scan.epoch, detail=why)
         # No per-id publisher: refused ids must not cost the edge any state
-        self._session.put(self.keys.scan_ack(robot), wire.encode(ack),
+        self._session.put(self.keys.scan_ack(robot, self.edge_id), wire.encode(ack),
                           congestion_control=zenoh.CongestionControl.DROP, express=True)
 
     def _new_robot(self, robot: str) -> RobotSession:
         """Called with the lock held, for an admitted robot without a session."""
         assert self._session is not None, "scans arrive only after start()"
         pub = self._session.declare_publisher(
-            self.keys.scan_ack(robot), congestion_control=zenoh.CongestionControl.DROP, express=True)
+            self.keys.scan_ack(robot, self.edge_id), congestion_control=zenoh.CongestionControl.DROP,
+            express=True)
         generation = self._generations.pop(robot, -1) + 1
         self._generations[robot] = generation
         while len(self._generations) > GENERATIONS_KEPT:
@@ -429,12 +430,13 @@ class MappingService:
         data = wire.encode(cp)
         try:
             if final:  # the one the robot must not miss: wait for room rather than drop it
-                self._session.put(self.keys.checkpoint(rs.robot), data,
+                self._session.put(self.keys.checkpoint(rs.robot, self.edge_id), data,
                                   congestion_control=zenoh.CongestionControl.BLOCK)
             else:
                 if rs.cp_pub is None:
                     rs.cp_pub = self._session.declare_publisher(
-                        self.keys.checkpoint(rs.robot), congestion_control=zenoh.CongestionControl.DROP)
+                        self.keys.checkpoint(rs.robot, self.edge_id),
+                        congestion_control=zenoh.CongestionControl.DROP)
                 rs.cp_pub.put(data)
         except Exception as exc:  # the session is closing
             log.debug("checkpoint not published: %s", exc)
@@ -460,7 +462,7 @@ class MappingService:
                 # (float32, as every final: check_attach decoded the attach's coded map)
                 cp = dataclasses.replace(rs.pending.checkpoint, edge=self.edge_id, epoch=entry.epoch,
                                          final=True)
-                self._session.put(self.keys.checkpoint(rs.robot), wire.encode(cp),
+                self._session.put(self.keys.checkpoint(rs.robot, self.edge_id), wire.encode(cp),
                                   congestion_control=zenoh.CongestionControl.BLOCK)
                 self._count(rs, "final_checkpoints")
         finally:

@@ -1,8 +1,8 @@
 """Intake of messages from the network: decode within the receiver's limits, check the sender
 named in the key, and count every message refused as a drop (``runtime.drops.Drops``: counted by
 reason, the log rate-limited) instead of a log line each. A robot's scans and frames on the edge;
-the edges' status and liveliness tokens wherever they are read (the robot's fleet link and camera,
-the edge's peers)."""
+an edge's answers on the robot; the edges' status and liveliness tokens wherever they are read (the
+robot's fleet link and camera, the edge's peers)."""
 
 from __future__ import annotations
 
@@ -45,6 +45,22 @@ def decode_from_robot(sample: zenoh.Sample, expect: type[M], robot: str, drops: 
         drops.drop("foreign", f"{what}: robot {msg.robot!r} in the payload, {robot!r} in the key")
         return None
     return msg
+
+
+def answer_from(sample: zenoh.Sample, keys: Keys, drops: DropCounter, named: str, what: str) -> bool:
+    """Whether an answer (ack, detections, checkpoint) that names edge ``named`` came on that edge's
+    key, else False after counting a drop: ``bad_key`` (not an answer key) or ``foreign_<what>``
+    (another edge's key: the router's ACL lets an edge identity put only under its own id, so the
+    payload's edge must be the key's). The key before per-edge answers (no edge chunk) passes."""
+    key = str(sample.key_expr)
+    edge = keys.answering_edge(key)
+    if edge is None:
+        drops.drop("bad_key", f"{what} on {key[:100]!r}")
+        return False
+    if edge and edge != named:
+        drops.drop(f"foreign_{what}", f"{what} naming edge {named[:40]!r} on edge {edge!r}'s key")
+        return False
+    return True
 
 
 def edge_status(sample: zenoh.Sample, keys: Keys, drops: DropCounter) -> wire.Status | None:

@@ -6,10 +6,10 @@ Layout (``<ns>`` defaults to ``zoffload``; ids are single chunks, no ``/``, ``*`
 key                                   primitive   payload
 ====================================  ==========  =====================================================
 ``<ns>/data/<robot>/scan``            pub/sub     ``wire.Scan``  robot → edge, congestion control BLOCK_FIRST
-``<ns>/data/<robot>/scan_ack``        pub/sub     ``wire.ScanAck`` edge → robot, one per scan
+``<ns>/data/<robot>/scan_ack/<edge>``  pub/sub     ``wire.ScanAck`` edge → robot, one per scan
 ``<ns>/data/<robot>/frame``           pub/sub     ``wire.Frame`` robot → edge detector
-``<ns>/data/<robot>/detections``      pub/sub     ``wire.Detections`` edge → robot, one per frame
-``<ns>/data/<robot>/checkpoint``      pub/sub     ``wire.Checkpoint`` edge → robot, every few scans
+``<ns>/data/<robot>/detections/<e>``  pub/sub     ``wire.Detections`` edge → robot, one per frame
+``<ns>/data/<robot>/checkpoint/<e>``  pub/sub     ``wire.Checkpoint`` edge → robot, every few scans
 ``<ns>/ctrl/<robot>/attach/<edge>``   queryable   ``wire.Attach`` → ``wire.AttachReply`` (edge)
 ``<ns>/view/<robot>/preview``         pub/sub     ``wire.Preview`` robot → viewers, while one listens
 ``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
@@ -22,6 +22,13 @@ key                                   primitive   payload
 
 Data, control, status and liveliness live under separate prefixes so a router ACL or a recorder
 can select one class of traffic with a single wildcard.
+
+**Answers** (acks, detections, checkpoints) go under the answering edge's id (``<e>``), so the
+router's ACL can hold each edge to its own (``runtime/acl.py``), and a robot drops an answer whose
+payload names another edge than its key (``protocol/intake.answer_from``): an edge identity cannot
+answer in another edge's name. Before 2026-11-29 they went on ``<ns>/data/<robot>/<answer>``, with
+no edge chunk; a robot still reads that key (an older edge's answers; a router with the ACL refuses
+puts on it), an older robot does not read the new ones: upgrade robots first.
 """
 
 from __future__ import annotations
@@ -52,26 +59,60 @@ class Keys:
     def scan(self, robot: str) -> str:
         return f"{self.ns}/data/{check_id(robot, 'robot id')}/scan"
 
-    def scan_ack(self, robot: str) -> str:
-        return f"{self.ns}/data/{check_id(robot, 'robot id')}/scan_ack"
-
     def all_scans(self) -> str:
         return f"{self.ns}/data/*/scan"
-
-    def all_scan_acks(self) -> str:
-        return f"{self.ns}/data/*/scan_ack"
 
     def frame(self, robot: str) -> str:
         return f"{self.ns}/data/{check_id(robot, 'robot id')}/frame"
 
-    def detections(self, robot: str) -> str:
-        return f"{self.ns}/data/{check_id(robot, 'robot id')}/detections"
-
     def all_frames(self) -> str:
         return f"{self.ns}/data/*/frame"
 
-    def all_detections(self) -> str:
-        return f"{self.ns}/data/*/detections"
+    # Answers, edge → robot, under the answering edge's id (the module's docstring); a robot reads
+    # every edge's (``**``: the key before per-edge answers too)
+    ANSWERS = ("scan_ack", "detections", "checkpoint")
+
+    def scan_ack(self, robot: str, edge: str) -> str:
+        return self._answer(robot, "scan_ack", edge)
+
+    def scan_acks(self, robot: str) -> str:
+        return self._answers(robot, "scan_ack")
+
+    def all_scan_acks(self, edge: str | None = None) -> str:
+        """Every robot's acks from ``edge``, or from every edge."""
+        return self._answers("*", "scan_ack", edge)
+
+    def detections(self, robot: str, edge: str) -> str:
+        return self._answer(robot, "detections", edge)
+
+    def detections_to(self, robot: str) -> str:
+        return self._answers(robot, "detections")
+
+    def all_detections(self, edge: str | None = None) -> str:
+        return self._answers("*", "detections", edge)
+
+    def checkpoint(self, robot: str, edge: str) -> str:
+        return self._answer(robot, "checkpoint", edge)
+
+    def checkpoints(self, robot: str) -> str:
+        return self._answers(robot, "checkpoint")
+
+    def _answer(self, robot: str, kind: str, edge: str) -> str:
+        return f"{self.ns}/data/{check_id(robot, 'robot id')}/{kind}/{check_id(edge, 'edge id')}"
+
+    def _answers(self, robot: str, kind: str, edge: str | None = None) -> str:
+        robot = robot if robot == "*" else check_id(robot, "robot id")
+        return f"{self.ns}/data/{robot}/{kind}/{'**' if edge is None else check_id(edge, 'edge id')}"
+
+    def answering_edge(self, key: str) -> str | None:
+        """The edge id in an answer's key: "" on the key before per-edge answers, None when ``key``
+        is not an answer key of this namespace (one deeper than the edge's chunk, say)."""
+        parts = str(key).split("/")
+        if len(parts) < 4 or parts[0] != self.ns or parts[1] != "data" or parts[3] not in self.ANSWERS:
+            return None
+        if len(parts) == 4:
+            return ""
+        return parts[4] if len(parts) == 5 and ID.match(parts[4]) else None
 
     # Control (queryables)
     def map(self, robot: str) -> str:
@@ -85,9 +126,6 @@ class Keys:
 
     def all_pings(self) -> str:
         return f"{self.ns}/ctrl/*/ping"
-
-    def checkpoint(self, robot: str) -> str:
-        return f"{self.ns}/data/{check_id(robot, 'robot id')}/checkpoint"
 
     # Attach: robot N asks edge E to map it (queryable held by E for every robot)
     def attach(self, robot: str, edge: str) -> str:

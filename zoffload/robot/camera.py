@@ -43,6 +43,7 @@ import zenoh
 from zoffload.detect.detector import Detections, resize_to
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, Strategy, make_strategy
 from zoffload.protocol import wire
+from zoffload.protocol.intake import answer_from
 from zoffload.protocol.keys import Keys
 from zoffload.robot.edgechoice import EdgeChoice
 from zoffload.robot.encoding import JPEG, RAW, EncodingChoice
@@ -144,7 +145,7 @@ class CameraOffloader:
             self.book.edge_present = presence.any
             self.choice.present(presence.edges)
         presence.subscribe_status(self._on_edge_status)
-        self._det_sub = session.declare_subscriber(self.keys.detections(self.opts.robot_id),
+        self._det_sub = session.declare_subscriber(self.keys.detections_to(self.opts.robot_id),
                                                    self.drops.guard(self._on_result, "detections"))
         self._pub = session.declare_publisher(self.keys.frame(self.opts.robot_id),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
@@ -202,6 +203,8 @@ class CameraOffloader:
             return
         if msg.robot != self.opts.robot_id:
             self.drops.drop("foreign_detections", f"detections for robot {msg.robot!r}")
+            return
+        if not answer_from(sample, self.keys, self.drops, msg.edge, "detections"):  # another edge's name
             return
         keep = msg.classes == 0
         boxes, scores = msg.boxes[keep].copy(), msg.scores[keep].copy()

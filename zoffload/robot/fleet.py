@@ -33,6 +33,7 @@ import numpy as np
 import zenoh
 
 from zoffload.protocol import wire
+from zoffload.protocol.intake import answer_from
 from zoffload.protocol.keys import Keys
 from zoffload.robot.assign import ATTACHED, UNASSIGNED, Assignment
 from zoffload.robot.odometry import Snapshot
@@ -351,7 +352,7 @@ class FleetLink:
         for edge in presence.edges:
             self.state.edge_present(edge, time.monotonic())
         self._subs = [
-            session.declare_subscriber(self.keys.checkpoint(self.robot),
+            session.declare_subscriber(self.keys.checkpoints(self.robot),
                                        self.drops.guard(self._on_checkpoint, "checkpoint")),
         ]
         self._thread.start()
@@ -396,6 +397,8 @@ class FleetLink:
     def _on_checkpoint(self, sample: zenoh.Sample) -> None:
         try:
             cp = wire.decode(sample.payload.to_bytes(), expect=wire.Checkpoint)
+            if not answer_from(sample, self.keys, self.drops, cp.edge, "checkpoint"):  # another edge's name
+                return
             checked = self.state.expects(cp)  # only then is its map worth decoding (counted stale below)
             if checked:
                 cp.cloud()  # a coded local map must decode now, not when an outage needs it

@@ -40,6 +40,7 @@ from zoffload.policy.onnx_scale import load_scale_policy
 from zoffload.policy.rate import LinkView
 from zoffload.policy.scale import ScalePolicy
 from zoffload.protocol import coding, wire
+from zoffload.protocol.intake import answer_from
 from zoffload.protocol.keys import Keys
 from zoffload.robot.fleet import STATUS_WAIT, FleetLink, FleetState, Sensor
 from zoffload.robot.ledger import ScanLedger
@@ -148,7 +149,7 @@ class ScanStreamer:
         coding.warmup()
         self.presence = presence
         robot = self.opts.robot_id
-        self._ack_sub = session.declare_subscriber(self.keys.scan_ack(robot),
+        self._ack_sub = session.declare_subscriber(self.keys.scan_acks(robot),
                                                    self.drops.guard(self._on_ack, "ack"))
         # BLOCK_FIRST: on a congested link the first scan waits for room (on the sender thread;
         # newer scans replace it in its slot) and others are dropped whole. With DROP every
@@ -184,6 +185,8 @@ class ScanStreamer:
             return
         if ack.robot != self.opts.robot_id:
             self.drops.drop("foreign_ack", f"an ack for robot {ack.robot!r}")
+            return
+        if not answer_from(sample, self.keys, self.drops, ack.edge, "ack"):  # in another edge's name
             return
         fleet = self.fleet_state
         if fleet is None:

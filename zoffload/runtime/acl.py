@@ -5,12 +5,15 @@ Default deny; what each may do, with flows seen from the router (ingress: from t
 egress: to it) and every rule key including the message's key (Zenoh checks inclusion):
 
 * robot R: put its own ``data/R/scan``, ``data/R/frame``, ``status/R``; hold ``alive/robot/R``;
-  subscribe to and receive only its own answers (``data/R/scan_ack``, ``data/R/detections``,
-  ``data/R/checkpoint``) and the edges' status (``status/edge/*``: their capacity and load, which
-  the fleet assignment ranks by); query only its own ``ctrl/R/map``, ``ctrl/R/ping`` and
-  ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies; watch ``alive/edge/*``.
+  subscribe to and receive only its own answers, from every edge (``data/R/scan_ack/**``,
+  ``data/R/detections/**``, ``data/R/checkpoint/**``) and the edges' status (``status/edge/*``:
+  their capacity and load, which the fleet assignment ranks by); query only its own ``ctrl/R/map``,
+  ``ctrl/R/ping`` and ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies;
+  watch ``alive/edge/*``.
 * edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
-  checkpoints for any robot and its own ``status/edge/E``; declare and answer the
+  checkpoints for any robot under its own id only (``data/*/scan_ack/E``, ...: an edge cannot
+  answer in another edge's name, and the robot checks the payload's edge against the key's) and its
+  own ``status/edge/E``; declare and answer the
   ``ctrl/*/map|ping`` queryables and its own ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
   ``alive/robot/*`` and ``alive/edge/*``, and receive the other edges' status (``status/edge/*``:
   whether one has room for a robot it sheds). An edge cannot answer another edge's attach queries.
@@ -50,13 +53,18 @@ def _wild(key_of: Callable[[str], str]) -> str:
     return "/".join(parts)
 
 
+def _answers(key_of: Callable[[str, str], str], edge: str) -> str:
+    """Answers of one kind from ``edge`` to every robot: the robot's chunk as ``*``."""
+    return _wild(lambda r: key_of(r, edge))
+
+
 def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages),
             "key_exprs": list(keys)}
 
 
 def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
-    answers = [k.scan_ack(r), k.detections(r), k.checkpoint(r), k.all_edge_status()]
+    answers = [k.scan_acks(r), k.detections_to(r), k.checkpoints(r), k.all_edge_status()]
     ctrl = [k.map(r), k.ping(r), _wild(lambda e: k.attach(r, e))]
     return [
         _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
@@ -78,7 +86,8 @@ def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
         _rule(f"edge_{e}_sub", "ingress", ["declare_subscriber"], inputs),
         _rule(f"edge_{e}_rx", "egress", ["put"], inputs),
         _rule(f"edge_{e}_put", "ingress", ["put"],
-              [_wild(k.scan_ack), _wild(k.detections), _wild(k.checkpoint), k.edge_status(e)]),
+              [_answers(k.scan_ack, e), _answers(k.detections, e), _answers(k.checkpoint, e),
+               k.edge_status(e)]),
         _rule(f"edge_{e}_queryable", "ingress", ["declare_queryable"], ctrl),
         _rule(f"edge_{e}_queries", "egress", ["query"], ctrl),
         _rule(f"edge_{e}_reply", "ingress", ["reply"], ctrl),
@@ -107,7 +116,7 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
 
 
 def _router_rules(k: Keys, p: str) -> list[dict[str, Any]]:
-    data = [_wild(k.scan), _wild(k.frame), _wild(k.scan_ack), _wild(k.detections), _wild(k.checkpoint),
+    data = [_wild(k.scan), _wild(k.frame), k.all_scan_acks(), k.all_detections(), _wild(k.checkpoints),
             f"{k.ns}/status/**"]
     ctrl = [k.all_maps(), k.all_pings(), _wild(k.all_attaches)]
     alive = [k.any_robot_alive(), k.any_edge_alive()]

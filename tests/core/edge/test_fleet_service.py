@@ -97,8 +97,8 @@ def test_attach_continues_the_checkpoint_and_checkpoints_come_back(free_port: in
                              checkpoint_every=3)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
-        acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
-        cps = Inbox(s, KEYS.checkpoint("r1"), wire.Checkpoint)
+        acks = Inbox(s, KEYS.scan_acks("r1"), wire.ScanAck)
+        cps = Inbox(s, KEYS.checkpoints("r1"), wire.Checkpoint)
         # The robot registered scan 20 itself while it had no edge
         local = old.register(20, points(20)).pose
         reply = attach(s, "r1", 2, checkpoint=wire.encode(cp), seqs=[20], poses=local[None])
@@ -154,8 +154,8 @@ def test_drain_sends_final_checkpoints_and_keeps_mapping_the_old_epoch(free_port
                              checkpoint_every=1)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
-        acks = Inbox(s, KEYS.scan_ack("r1"), wire.ScanAck)
-        cps = Inbox(s, KEYS.checkpoint("r1"), wire.Checkpoint)
+        acks = Inbox(s, KEYS.scan_acks("r1"), wire.ScanAck)
+        cps = Inbox(s, KEYS.checkpoints("r1"), wire.Checkpoint)
         assert attach(s, "r1", 1).accepted and attach(s, "r2", 1).accepted  # r2 never sends a scan
         pub = s.declare_publisher(KEYS.scan("r1"))
         for seq in range(3):
@@ -224,7 +224,7 @@ def test_an_overloaded_edge_sheds_its_newest_robot(free_port: int, queue: int) -
     service = MappingService(KEYS, SlowRecipe(), edge_id="e1", workers=1, queue=queue, fleet=fleet)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
-        acks = {r: Inbox(s, KEYS.scan_ack(r), wire.ScanAck) for r in ("r1", "r2")}
+        acks = {r: Inbox(s, KEYS.scan_acks(r), wire.ScanAck) for r in ("r1", "r2")}
         assert attach(s, "r1", 1).accepted and attach(s, "r2", 1).accepted
         pts = np.zeros((10, 3), np.float32)
         stop = threading.Event()
@@ -304,7 +304,7 @@ def test_a_scan_with_the_robots_prior_after_an_outage_is_predicted_from_it(free_
         wait_token(s, KEYS.edge_alive("e1"))
         errors = {}
         for robot in ("r1", "r2"):
-            acks = Inbox(s, KEYS.scan_ack(robot), wire.ScanAck)
+            acks = Inbox(s, KEYS.scan_acks(robot), wire.ScanAck)
             assert attach(s, robot, 1).accepted
             pub = s.declare_publisher(KEYS.scan(robot))
             seqs = [*range(start, last_seen + 1), back, back + 1, back + 2]
@@ -335,7 +335,7 @@ def test_a_robot_that_reads_6_gets_coded_checkpoints_and_a_corrupt_one_is_refuse
         wait_token(s, KEYS.edge_alive("e1"))
         got = {}
         for robot, reads in (("r1", 6), ("r2", 5)):
-            cps = Inbox(s, KEYS.checkpoint(robot), wire.Checkpoint)
+            cps = Inbox(s, KEYS.checkpoints(robot), wire.Checkpoint)
             assert attach(s, robot, 1, reads=reads).accepted
             pub = s.declare_publisher(KEYS.scan(robot))
             for seq in range(4):

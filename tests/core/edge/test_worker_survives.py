@@ -74,7 +74,7 @@ def test_a_checkpoint_that_fails_does_not_end_the_worker() -> None:
         svc._on_attach(query)  # type: ignore[arg-type]
         assert query.got.accepted, query.got.detail
         pts = np.random.default_rng(0).uniform(-4, 4, (3000, 3)).astype(np.float32)
-        acks = svc._session.pubs.setdefault(keys.scan_ack("r1"), _Pub())  # type: ignore[attr-defined]
+        acks = svc._session.pubs.setdefault(keys.scan_ack("r1", "e1"), _Pub())  # type: ignore[attr-defined]
         for seq in (1, 2, 3):
             scan = wire.Scan(robot="r1", seq=seq, send_stamp=float(seq), capture_stamp=float(seq), voxel=0.0,
                              voxel_max=0.0, max_range=5.0, n_raw=len(pts), points=pts, edge="e1", epoch=1)

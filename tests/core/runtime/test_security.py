@@ -43,18 +43,26 @@ def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() ->
     assert allowed(acl, "robot_robot1", "ingress", "put", k.frame("robot1"))
     assert allowed(acl, "robot_robot1", "ingress", "put", k.robot_status("robot1"))
     assert not allowed(acl, "robot_robot1", "ingress", "put", k.scan("robot2"))
-    assert not allowed(acl, "robot_robot1", "ingress", "put", k.scan_ack("robot1"))
-    assert not allowed(acl, "robot_robot1", "ingress", "put", k.detections("robot2"))
+    assert not allowed(acl, "robot_robot1", "ingress", "put", k.scan_ack("robot1", "edge1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "put", k.detections("robot2", "edge1"))
     assert not allowed(acl, "robot_robot1", "ingress", "liveliness_token", k.edge_alive("edge1"))
     assert allowed(acl, "robot_robot1", "ingress", "liveliness_token", k.robot_alive("robot1"))
-    assert not allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot2"))  # no eavesdropping
-    assert allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot1"))
+    assert not allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot2", "edge1"))  # no spying
+    assert allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot1", "edge1"))
+    for key in (k.scan_acks("robot1"), k.detections_to("robot1"), k.checkpoints("robot1")):
+        assert allowed(acl, "robot_robot1", "ingress", "declare_subscriber", key)  # every edge's answers
     assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1"))
     assert not allowed(acl, "robot_robot1", "ingress", "query", k.map("robot2"))
     assert not allowed(acl, "robot_robot1", "ingress", "declare_queryable", k.all_maps())
-    # the edge answers everyone, and nothing else
-    for key in (k.scan_ack("robot1"), k.scan_ack("robot2"), k.detections("robot2"), k.edge_status("edge1")):
+    # the edge answers everyone under its own id, and nothing else
+    for key in (k.scan_ack("robot1", "edge1"), k.scan_ack("robot2", "edge1"), k.detections("robot2", "edge1"),
+                k.checkpoint("robot2", "edge1"), k.edge_status("edge1")):
         assert allowed(acl, "edge_edge1", "ingress", "put", key)
+    # not in another edge's name, nor on the key before per-edge answers (no edge chunk)
+    for key in (k.scan_ack("robot1", "edge2"), k.detections("robot1", "edge2"),
+                k.checkpoint("robot1", "edge2"), "zoffload/data/robot1/scan_ack",
+                "zoffload/data/robot1/checkpoint"):
+        assert not allowed(acl, "edge_edge1", "ingress", "put", key)
     assert not allowed(acl, "edge_edge1", "ingress", "put", k.scan("robot1"))
     assert allowed(acl, "edge_edge1", "ingress", "declare_subscriber", k.all_scans())
     assert allowed(acl, "edge_edge1", "ingress", "declare_queryable", k.all_pings())

@@ -11,7 +11,7 @@ from zoffload.protocol import wire
 class Acks:
     def __init__(self, session: zenoh.Session, robot: str) -> None:
         self.items: list[wire.ScanAck] = []
-        self.sub = session.declare_subscriber(KEYS.scan_ack(robot), self._on)
+        self.sub = session.declare_subscriber(KEYS.scan_acks(robot), self._on)
 
     def _on(self, sample: zenoh.Sample) -> None:
         msg = wire.decode(sample.payload.to_bytes(), expect=wire.ScanAck)

@@ -51,7 +51,7 @@ def frame(robot: str, seq: int, w: int = 8, h: int = 6, **over: Any) -> bytes:
 class Answers:
     def __init__(self, session: zenoh.Session, robot: str) -> None:
         self.items: list[wire.Detections] = []
-        self.sub = session.declare_subscriber(KEYS.detections(robot), lambda s: self.items.append(
+        self.sub = session.declare_subscriber(KEYS.detections_to(robot), lambda s: self.items.append(
             wire.decode(s.payload.to_bytes(), expect=wire.Detections)))
 
 

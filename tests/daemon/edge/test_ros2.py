@@ -87,7 +87,7 @@ def test_odometry_tf_detections_and_latched_map(service: tuple) -> None:
         edge.put(KEYS.scan("robot1"), scan("robot1", k, captures[k]))
         # as on a real edge, the scan is in before its ack (registration takes milliseconds)
         wait_for(lambda k=k: ("robot1", "scan", k) in svc._stamps, what=f"scan {k}'s stamp")  # type: ignore[misc]
-        edge.put(KEYS.scan_ack("robot1"), ack("robot1", k, pose(0.5 * k, 0.1 * k)))
+        edge.put(KEYS.scan_ack("robot1", "edge1"), ack("robot1", k, pose(0.5 * k, 0.1 * k)))
         if k == 0:
             wait_for(lambda: "robot1" in svc.robots, what="robot1's publishers")
             time.sleep(0.5)
@@ -119,7 +119,7 @@ def test_odometry_tf_detections_and_latched_map(service: tuple) -> None:
         height=1, data=np.zeros(6, np.uint8))))
     # as on a real edge, the frame is in before its detections (inference takes milliseconds)
     wait_for(lambda: ("robot1", "frame", 9) in svc._stamps, what="frame 9's stamp")
-    edge.put(KEYS.detections("robot1"), wire.encode(wire.Detections(
+    edge.put(KEYS.detections("robot1", "edge1"), wire.encode(wire.Detections(
         robot="robot1", seq=9, send_stamp=1.0, edge="edge1", model="picodet-s", status="ok", infer_time=0.01,
         queue_time=0.0, batch=1, boxes=np.array([[10, 20, 30, 60]], np.float32),
         scores=np.array([0.8], np.float32), classes=np.array([0], np.int32))))
@@ -168,9 +168,9 @@ def test_only_this_edges_answers_count_and_bad_ones_are_drops(service: tuple, fr
                  and svc.status().get("ros2.drop.malformed") == 3.0, what="forged, broken scans dropped")
         assert ("robot2", "scan", 5) not in svc._stamps
         assert not any(k[0] == "robot1" and k[2] in (6, 7) for k in svc._stamps)
-        other.put(KEYS.scan_ack("intruder"), ack("intruder", 0, np.eye(4)))  # not this edge's: ignored
-        edge.put(KEYS.scan_ack("robot2"), b"\x93garbage")
-        edge.put(KEYS.scan_ack("robot3"), ack("robot3", 0, np.full((4, 4), np.nan), status="error"))
+        other.put(KEYS.scan_ack("intruder", "edge9"), ack("intruder", 0, np.eye(4)))  # not this edge's
+        edge.put(KEYS.scan_ack("robot2", "edge1"), b"\x93garbage")
+        edge.put(KEYS.scan_ack("robot3", "edge1"), ack("robot3", 0, np.full((4, 4), np.nan), status="error"))
         wait_for(lambda: svc.drops.total() >= 1, what="the malformed ack dropped")
         time.sleep(0.3)
     assert not svc.robots and svc.counts["odom"] == 0

@@ -54,7 +54,7 @@ class FakeEdge:
 
     def __init__(self, session: zenoh.Session, robot: str = "robot1") -> None:
         self.session, self.silent, self.served = session, False, 0
-        self._pub = session.declare_publisher(KEYS.detections(robot))
+        self._pub = session.declare_publisher(KEYS.detections(robot, "fake"))
         self._sub = session.declare_subscriber(KEYS.frame(robot), self._on_frame)
         self.token: zenoh.LivelinessToken | None = session.liveliness().declare_token(KEYS.edge_alive("fake"))
 

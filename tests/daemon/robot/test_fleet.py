@@ -78,7 +78,7 @@ class FakeEdge:
             mine = scan.epoch == self.epoch
         pose = np.eye(4)
         pose[0, 3] = 0.01 * scan.seq
-        key = KEYS.scan_ack(scan.robot)
+        key = KEYS.scan_ack(scan.robot, self.edge)
 
         def ack(edge: str, epoch: int) -> bytes:
             return wire.encode(wire.ScanAck(
@@ -88,7 +88,7 @@ class FakeEdge:
 
         if self.stale:
             self.session.put(key, ack(self.edge, scan.epoch + 1))
-            self.session.put(key, ack("edge9", scan.epoch))
+            self.session.put(KEYS.scan_ack(scan.robot, "edge9"), ack("edge9", scan.epoch))
         if mine:
             self.session.put(key, ack(self.edge, scan.epoch))
             if scan.seq % 5 == 0 and self.checkpoints > 0:
@@ -97,7 +97,7 @@ class FakeEdge:
                                      stamp=scan.capture_stamp, voxel_size=0.4, max_range=40.0, min_range=0.0,
                                      max_points_per_voxel=20, pose=pose, delta=np.eye(4),
                                      points=scan.cloud()[::4])
-                self.session.put(KEYS.checkpoint(scan.robot), wire.encode(cp))
+                self.session.put(KEYS.checkpoint(scan.robot, self.edge), wire.encode(cp))
 
     def leave(self) -> None:
         """The edge's token goes (as when its process dies) and it stops answering."""

@@ -210,7 +210,7 @@ def slow_edge(port: int, answer_after: float, edge_time: float,
     due: queue.Queue[tuple[float, wire.Scan, float] | None] = queue.Queue()
     session = open_session(listen_on(port))
     token = session.liveliness().declare_token(KEYS.edge_alive("slow"))
-    pub = session.declare_publisher(KEYS.scan_ack("robot1"))
+    pub = session.declare_publisher(KEYS.scan_ack("robot1", "slow"))
 
     def on_scan(sample: Any) -> None:
         msg = wire.decode(sample.payload.to_bytes(), expect=wire.Scan)

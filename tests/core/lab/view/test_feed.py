@@ -59,13 +59,13 @@ def test_published_traffic_reaches_the_recording_and_the_map_is_polled(sessions:
         wait_for(lambda: _routed(side, viewer), 10, "routing")
         put(side, KEYS.robot_status(R), status(R, 1.0, acked=1, map_points=200))
         put(side, KEYS.scan(R), scan(R, 2, np.ones((4, 3))))
-        put(side, KEYS.scan_ack(R), ack(R, 1, pose(1.0), map_points=200))
-        put(side, KEYS.scan_ack(R), ack(R, 2, pose(2.0), map_points=200))
+        put(side, KEYS.scan_ack(R, "e1"), ack(R, 1, pose(1.0), map_points=200))
+        put(side, KEYS.scan_ack(R, "e1"), ack(R, 2, pose(2.0), map_points=200))
         put(side, KEYS.preview(R), preview(R, 1, "edge"))
         put(side, KEYS.edge_status("e1"), wire.Status(source="edge", id="e1", stamp=1.0, values={"q": 1.0}))
         # refused: garbage, a message naming another robot than its key, a second robot (max 1)
-        put(side, KEYS.scan_ack(R), b"\x00not msgpack")
-        put(side, KEYS.scan_ack(R), ack("other", 3, pose(3.0)))
+        put(side, KEYS.scan_ack(R, "e1"), b"\x00not msgpack")
+        put(side, KEYS.scan_ack(R, "e1"), ack("other", 3, pose(3.0)))
         put(side, KEYS.robot_status("r2"), status("r2", 1.0, acked=1))
         wait_for(lambda: bool(queries) and feed.logged >= 7, 10, "messages logged and the map queried")
         wait_for(lambda: feed.drops.total() >= 3, 5, "the refused messages counted")
@@ -114,7 +114,7 @@ def _routed(side: Any, viewer: Any) -> bool:
     """Whether a publisher on ``side`` matches the viewer's subscribers (declared before)."""
     from zoffload.runtime.session import has_subscribers
 
-    pub = side.declare_publisher(KEYS.scan_ack(R))
+    pub = side.declare_publisher(KEYS.scan_ack(R, "e1"))
     try:
         return has_subscribers(pub)
     finally:

@@ -36,7 +36,7 @@ def test_a_live_view_records_what_its_session_hears_to_an_rrd_file(free_port: in
             pass  # the gRPC server listens
         keys = Keys()
         for seq in range(1, 4):
-            session.put(keys.scan_ack(R), wire.encode(ack(R, seq, pose(float(seq)))))
+            session.put(keys.scan_ack(R, "e1"), wire.encode(ack(R, seq, pose(float(seq)))))
         session.put(keys.preview(R), wire.encode(preview(R, 1, "local")))
         assert view.feed is not None
         feed = view.feed
