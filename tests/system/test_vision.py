@@ -230,6 +230,9 @@ def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_whe
     answered = sum(m["balance"][k] for k in ("edge_done", "edge_dropped", "edge_error"))
     assert m["link_clock"]["stamped"] >= 0.8 * answered, (m["link_clock"], m["balance"])
     if mbps is None:
+        # the camera pings the edge its frames go to (its own key, ctrl/robot1/ping/edge1), and
+        # that edge answers: a loopback round trip, not the unanswered pings' reply timeout
+        assert m["ping_ms"] is not None and 0 < m["ping_ms"] < 100, m["ping_ms"]
         assert enc["now"] == "bgr8" and enc["switches"] >= 1, enc
         # raw once the trial said so (a slow edge, ~60 ms a frame against the camera's 40, can drop
         # the first trials and put the switch late in the run: CI once had 36 of the last 100 JPEG)

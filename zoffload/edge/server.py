@@ -152,7 +152,7 @@ class EdgeServer:
     def startup(self) -> None:
         s = self.settings
         session = self.session = open_session(edge_zenoh(s.zenoh, s.limits.max_bytes))
-        self._ping_q = session.declare_queryable(self.keys.all_pings(),
+        self._ping_q = session.declare_queryable(self.keys.all_pings(s.edge_id),
                                                  self.drops.guard(self._on_ping, "ping"))
         self._status_pub = session.declare_publisher(
             self.keys.edge_status(s.edge_id), congestion_control=zenoh.CongestionControl.DROP

@@ -13,7 +13,7 @@ key                                   primitive   payload
 ``<ns>/ctrl/<robot>/attach/<edge>``   queryable   ``wire.Attach`` → ``wire.AttachReply`` (edge)
 ``<ns>/view/<robot>/preview``         pub/sub     ``wire.Preview`` robot → viewers, while one listens
 ``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
-``<ns>/ctrl/<robot>/ping``            queryable   ``wire.Pong`` answered by the edge (liveness RTT)
+``<ns>/ctrl/<robot>/ping/<edge>``     queryable   ``wire.Pong`` answered by that edge (liveness RTT)
 ``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz
 ``<ns>/status/edge/<edge>``           pub/sub     ``wire.Status`` edge counters, 1 Hz
 ``<ns>/alive/edge/<edge>``            liveliness  token held while the edge daemon runs
@@ -121,11 +121,13 @@ class Keys:
     def all_maps(self) -> str:
         return f"{self.ns}/ctrl/*/map"
 
-    def ping(self, robot: str) -> str:
-        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/ping"
+    # Ping: robot N asks edge E for a pong (the round trip to the edge its frames go to); E's
+    # queryable answers only its own key, as it answers only its own attaches
+    def ping(self, robot: str, edge: str) -> str:
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/ping/{check_id(edge, 'edge id')}"
 
-    def all_pings(self) -> str:
-        return f"{self.ns}/ctrl/*/ping"
+    def all_pings(self, edge: str) -> str:
+        return f"{self.ns}/ctrl/*/ping/{check_id(edge, 'edge id')}"
 
     # Attach: robot N asks edge E to map it (queryable held by E for every robot)
     def attach(self, robot: str, edge: str) -> str:

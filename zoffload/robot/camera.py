@@ -153,7 +153,16 @@ class CameraOffloader:
             key = self.keys.preview(self.opts.robot_id)
             self.preview = PreviewPublisher(session, key, self.opts.robot_id,
                                             period=self.opts.preview_period).start()
-        ping = self.keys.ping(self.opts.robot_id)
+        def ping() -> str | None:
+            """The ping key of the edge frames go to now, or would go to first (the rule's round
+            trip is to that edge: in a fleet, another edge's link says nothing of it)."""
+            with self._lock:
+                edge = self.choice.current
+                if edge is None or edge not in self.choice.edges:
+                    order = self.choice.rank(skip_full=False)
+                    edge = order[0] if order else None
+            return self.keys.ping(self.opts.robot_id, edge) if edge is not None else None
+
         spool = self.opts.out_dir / "monitor.csv" if self.opts.out_dir else None
         self.monitor = ResourceMonitor(session, ping, lambda: float(self.bytes_sent),
                                        ping_timeout=self.rules.reply_timeout, spool=spool).start()

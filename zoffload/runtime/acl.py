@@ -8,15 +8,15 @@ egress: to it) and every rule key including the message's key (Zenoh checks incl
   subscribe to and receive only its own answers, from every edge (``data/R/scan_ack/**``,
   ``data/R/detections/**``, ``data/R/checkpoint/**``) and the edges' status (``status/edge/*``:
   their capacity and load, which the fleet assignment ranks by); query only its own ``ctrl/R/map``,
-  ``ctrl/R/ping`` and ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies;
-  watch ``alive/edge/*``.
+  ``ctrl/R/ping/*`` (its round trip to an edge) and ``ctrl/R/attach/*`` (asking any edge to map
+  it) and receive their replies; watch ``alive/edge/*``.
 * edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
   checkpoints for any robot under its own id only (``data/*/scan_ack/E``, ...: an edge cannot
   answer in another edge's name, and the robot checks the payload's edge against the key's) and its
-  own ``status/edge/E``; declare and answer the
-  ``ctrl/*/map|ping`` queryables and its own ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
+  own ``status/edge/E``; declare and answer the ``ctrl/*/map`` queryable and its own
+  ``ctrl/*/ping/E`` and ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
   ``alive/robot/*`` and ``alive/edge/*``, and receive the other edges' status (``status/edge/*``:
-  whether one has room for a robot it sheds). An edge cannot answer another edge's attach queries.
+  whether one has room for a robot it sheds). An edge cannot answer another edge's attach or ping queries.
 * monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
   ``alive/**``; never put.
 * router P (another router linked to this one, holding P's certificate): what its robots' and
@@ -65,7 +65,7 @@ def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> 
 
 def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
     answers = [k.scan_acks(r), k.detections_to(r), k.checkpoints(r), k.all_edge_status()]
-    ctrl = [k.map(r), k.ping(r), _wild(lambda e: k.attach(r, e))]
+    ctrl = [k.map(r), _wild(lambda e: k.ping(r, e)), _wild(lambda e: k.attach(r, e))]
     return [
         _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
         _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], answers),
@@ -81,7 +81,7 @@ def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
 
 def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
     inputs = [k.all_scans(), k.all_frames()]
-    ctrl = [k.all_maps(), k.all_pings(), k.all_attaches(e)]
+    ctrl = [k.all_maps(), k.all_pings(e), k.all_attaches(e)]
     return [
         _rule(f"edge_{e}_sub", "ingress", ["declare_subscriber"], inputs),
         _rule(f"edge_{e}_rx", "egress", ["put"], inputs),
@@ -118,7 +118,7 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
 def _router_rules(k: Keys, p: str) -> list[dict[str, Any]]:
     data = [_wild(k.scan), _wild(k.frame), k.all_scan_acks(), k.all_detections(), _wild(k.checkpoints),
             f"{k.ns}/status/**"]
-    ctrl = [k.all_maps(), k.all_pings(), _wild(k.all_attaches)]
+    ctrl = [k.all_maps(), _wild(k.all_pings), _wild(k.all_attaches)]
     alive = [k.any_robot_alive(), k.any_edge_alive()]
     rules = []
     for flow in ("ingress", "egress"):

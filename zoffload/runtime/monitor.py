@@ -22,6 +22,7 @@ import psutil
 import zenoh
 
 from zoffload.policy.smoothing import MovingAverage
+from zoffload.protocol import wire
 
 log = logging.getLogger("zoffload.runtime.monitor")
 
@@ -96,14 +97,21 @@ def nic_bytes(nic: str, direction: str = "sent") -> Callable[[], float]:
 
 class Pinger:
     """Ping-pong over a Zenoh queryable once per ``period``: the round trip in ms, smoothed.
-    An unanswered ping counts as ``timeout`` (the link is at least that slow)."""
+    An unanswered ping counts as ``timeout`` (the link is at least that slow). ``key``: the ping key
+    of one edge (``Keys.ping``), or a function giving the current one (the edge a robot's frames go
+    to; None: no edge to ping, the period is skipped); a new key starts a new average. A pong must
+    name the edge its key does (an edge answers only its own key under the router's ACL)."""
 
-    def __init__(self, session: zenoh.Session, key: str, period: float = 1.0, timeout: float = 1.0,
-                 window: int = 5) -> None:
-        self.session, self.key, self.period, self.timeout = session, key, period, timeout
+    def __init__(self, session: zenoh.Session, key: str | Callable[[], str | None], period: float = 1.0,
+                 timeout: float = 1.0, window: int = 5) -> None:
+        self.session, self.period, self.timeout = session, period, timeout
+        self._key_of = key if callable(key) else (lambda: key)
+        self.key: str | None = None
+        self.window = window
         self.rtt = MovingAverage(window)
         self.last_ms = float("nan")
         self.lost = 0
+        self.wrong_edge = 0  # pongs naming another edge than their key
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="pinger", daemon=True)
 
@@ -116,19 +124,37 @@ class Pinger:
         self._thread.join(timeout=self.timeout + 1)
 
     def ping(self) -> float:
+        """One ping of the current key: the round trip in ms, NaN when unanswered."""
+        key = self.key if self.key is not None else self._key_of()
+        if key is None:
+            return float("nan")
+        edge = key.rsplit("/", 1)[-1]
         t0 = time.monotonic()
         try:
             # the stamp travels in the selector's parameters (``key?stamp=…``), echoed in the Pong
-            for reply in self.session.get(f"{self.key}?stamp={time.time():.6f}", timeout=self.timeout):
-                if reply.ok is not None:
-                    return (time.monotonic() - t0) * 1e3
+            for reply in self.session.get(f"{key}?stamp={time.time():.6f}", timeout=self.timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    pong = wire.decode(reply.ok.payload.to_bytes(), expect=wire.Pong)
+                except wire.WireError:
+                    pong = None
+                if pong is None or pong.edge != edge:
+                    self.wrong_edge += 1
+                    continue
+                return (time.monotonic() - t0) * 1e3
         except Exception as exc:  # a closed session while stopping, or a bad key
             if not self._stop.is_set():
-                log.warning("ping on %s failed: %s", self.key, exc)
+                log.warning("ping on %s failed: %s", key, exc)
         return float("nan")
 
     def _run(self) -> None:
         while not self._stop.wait(self.period):
+            key = self._key_of()
+            if key != self.key:  # another edge (or none): its round trip is another's
+                self.key, self.rtt = key, MovingAverage(self.window)
+            if key is None:
+                continue
             ms = self.ping()
             if math.isfinite(ms):
                 self.last_ms = ms
@@ -200,7 +226,8 @@ class ResourceMonitor:
 
     FIELDS = ("t", "cpu_system", "cpu_process", "mbps_out", "power_w", "ping_ms")
 
-    def __init__(self, session: zenoh.Session, ping_key: str, bytes_out: Callable[[], float],
+    def __init__(self, session: zenoh.Session, ping_key: str | Callable[[], str | None],
+                 bytes_out: Callable[[], float],
                  ping_timeout: float = 0.5, period: float = 1.0, keep: int = 3600,
                  spool: Path | None = None) -> None:
         self.session, self.ping_key, self.bytes_out = session, ping_key, bytes_out

@@ -142,7 +142,7 @@ def test_a_ping_with_a_bad_stamp_is_answered_not_a_traceback(free_port: int) -> 
     with running_edge(settings) as edge, client(free_port) as s:
         wait_token(s, KEYS.edge_alive("edge1"))
         for params in ("stamp=garbage", "stamp=1e300", "stamp=nan", "stamp=12.5", "x=1", ""):
-            replies = list(s.get(KEYS.ping("r1") + (f"?{params}" if params else ""), timeout=5))
+            replies = list(s.get(KEYS.ping("r1", "edge1") + (f"?{params}" if params else ""), timeout=5))
             pong = wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.Pong)
             assert pong.edge == "edge1"
             assert pong.stamp == 12.5 if params == "stamp=12.5" else np.isnan(pong.stamp)
