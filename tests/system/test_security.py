@@ -316,7 +316,7 @@ def test_an_authorised_edge_cannot_answer_in_another_edges_name(free_port: int, 
     the robot checked only the fields an edge echoes, so a compromised edge2 that overheard robot1's
     scans fed it poses in edge1's name. Now an edge puts answers only under its own id (the router
     refuses edge1's key to edge2) and the robot drops an answer whose payload names another edge than
-    its key (counted ``foreign_ack`` / ``foreign_checkpoint``)."""
+    its key (counted ``edge_key_ack`` / ``edge_key_checkpoint``)."""
     d = deploy(tmp_path, free_port, ["robot1"], ["edge1", "edge2"])
     procs: list[Proc] = []
     forged = {"edge1_key": 0, "own_key": 0}
@@ -347,8 +347,8 @@ def test_an_authorised_edge_cannot_answer_in_another_edges_name(free_port: int, 
         rows = list(csv.DictReader((tmp_path / "robot" / "robot_scans.csv").open()))
         assert not [r for r in rows if r["map_points"] == "777777"]  # no forged ack booked
         drops = metrics["drops"]
-        assert drops.get("foreign_ack", 0) >= 20, drops  # those on edge2's key, dropped by the robot
-        assert drops.get("foreign_ack", 0) <= forged["own_key"], drops  # none on edge1's key came through
+        assert drops.get("edge_key_ack", 0) >= 20, drops  # those on edge2's key, dropped by the robot
+        assert drops.get("edge_key_ack", 0) <= forged["own_key"], drops  # none on edge1's key came through
         for s in (attacker, monitor):
             s.close()
     finally:

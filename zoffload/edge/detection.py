@@ -1,7 +1,7 @@
 """The edge's object-detector service: every admitted robot's camera frames, one heavier ONNX model.
 
 Inputs:  ``<ns>/data/*/frame`` (wire.Frame).
-Outputs: ``<ns>/data/<robot>/detections`` (wire.Detections, one per frame: also for frames it
+Outputs: ``<ns>/data/<robot>/detections/<edge>`` (wire.Detections, one per frame: also for frames it
          could not decode or had to drop, so no robot waits for an answer that will not come;
          robots not admitted get an ``error`` answer saying so, rate-limited); status values
          (``status()``): the counters below, ``detector.free`` (the share of the last

@@ -2,9 +2,9 @@
 one ack per scan.
 
 Inputs:  ``<ns>/data/*/scan`` (wire.Scan).
-Outputs: ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck, one per scan, also for scans it had to
+Outputs: ``<ns>/data/<robot>/scan_ack/<edge>`` (wire.ScanAck, one per scan, also for scans it had to
          drop or could not register; ``refused`` for robots not admitted, rate-limited);
-         ``<ns>/data/<robot>/checkpoint`` (wire.Checkpoint, to attached robots).
+         ``<ns>/data/<robot>/checkpoint/<edge>`` (wire.Checkpoint, to attached robots).
 Queries: ``<ns>/ctrl/<robot>/map`` (wire.MapReply: the robot's registered map and the poses in
          memory; one reply built at a time, others answered "busy");
          ``<ns>/ctrl/<robot>/attach/<edge>`` (wire.Attach → wire.AttachReply).
@@ -115,16 +115,15 @@ class MappingService:
         self._sub = session.declare_subscriber(self.keys.all_scans(), self.drops.guard(self._on_scan, "scan"))
         self._map_q = session.declare_queryable(self.keys.all_maps(),
                                                 self.drops.guard(self._on_map_query, "map query"))
-        if self.edge_id:
-            self._attach_q = session.declare_queryable(self.keys.all_attaches(self.edge_id),
-                                                       self.attach_drops.guard(self._on_attach, "attach"))
-            # the other edges' room: a robot is shed only when another edge can take it
-            self._peers_sub = session.declare_subscriber(
-                self.keys.all_edge_status(), self.attach_drops.guard(self._on_peer, "edge status"))
-            # and whether they are alive: a dead edge's last status stays fresh for seconds
-            self._peers_alive = session.liveliness().declare_subscriber(
-                self.keys.any_edge_alive(), self.attach_drops.guard(self._on_peer_token, "edge token"),
-                history=True)
+        self._attach_q = session.declare_queryable(self.keys.all_attaches(self.edge_id),
+                                                   self.attach_drops.guard(self._on_attach, "attach"))
+        # the other edges' room: a robot is shed only when another edge can take it
+        self._peers_sub = session.declare_subscriber(
+            self.keys.all_edge_status(), self.attach_drops.guard(self._on_peer, "edge status"))
+        # and whether they are alive: a dead edge's last status stays fresh for seconds
+        self._peers_alive = session.liveliness().declare_subscriber(
+            self.keys.any_edge_alive(), self.attach_drops.guard(self._on_peer_token, "edge token"),
+            history=True)
 
     def _on_peer(self, sample: zenoh.Sample) -> None:
         st = edge_status(sample, self.keys, self.attach_drops)

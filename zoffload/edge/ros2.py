@@ -1,7 +1,7 @@
 """The edge's ROS 2 output: what the edge computes for each robot, as topics of an rmw_zenoh graph
 that ``ros2 topic echo`` and RViz read (no ROS install on the edge).
 
-Inputs (on the edge's own session): ``<ns>/data/*/scan_ack`` and ``<ns>/data/*/detections`` that
+Inputs (on the edge's own session): ``<ns>/data/*/scan_ack/**`` and ``<ns>/data/*/detections/**`` that
 this edge publishes (subscribed session-local), ``<ns>/data/*/scan`` and ``<ns>/data/*/frame`` for
 the robots' capture stamps, and each robot's map (``map_source``, or the map queryable
 ``<ns>/ctrl/<robot>/map`` asked every ``map_period``).

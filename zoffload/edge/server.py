@@ -1,13 +1,13 @@
 """zoffload-edge: one Zenoh session, presence and status, and the services that do the work.
 
 Services (each in its own module, all on the server's session):
-  mapping   ``<ns>/data/*/scan`` → ``<ns>/data/<robot>/scan_ack``, ``<ns>/ctrl/<robot>/map``
+  mapping   ``<ns>/data/*/scan`` → ``<ns>/data/<robot>/scan_ack/<edge>``, ``<ns>/ctrl/<robot>/map``
             (edge/mapping.py: one bounded KISS-ICP per robot on a fixed pool of workers, maps
             exported to ``map_dir`` on eviction and shutdown).
-  detector  ``<ns>/data/*/frame`` → ``<ns>/data/<robot>/detections`` (edge/detection.py), when the
+  detector  ``<ns>/data/*/frame`` → ``<ns>/data/<robot>/detections/<edge>`` (edge/detection.py), when the
             configured model can be found (or ``detector.enabled: true``, then a missing model is
             fatal).
-The server itself: liveliness ``<ns>/alive/edge/<edge>``, ``<ns>/ctrl/<robot>/ping`` (wire.Pong),
+The server itself: liveliness ``<ns>/alive/edge/<edge>``, ``<ns>/ctrl/<robot>/ping/<edge>`` (wire.Pong),
 ``<ns>/status/edge/<edge>`` (wire.Status, 1 Hz: every service's values in one message).
 
 Both services share one ``Admission`` (edge/admission.py): only admitted robots get state, and the

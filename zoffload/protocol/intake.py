@@ -49,7 +49,7 @@ def decode_from_robot(sample: zenoh.Sample, expect: type[M], robot: str, drops: 
 
 def answer_from(sample: zenoh.Sample, keys: Keys, drops: DropCounter, named: str, what: str) -> bool:
     """Whether an answer (ack, detections, checkpoint) that names edge ``named`` came on that edge's
-    key, else False after counting a drop: ``bad_key`` (not an answer key) or ``foreign_<what>``
+    key, else False after counting a drop: ``bad_key`` (not an answer key) or ``edge_key_<what>``
     (another edge's key: the router's ACL lets an edge identity put only under its own id, so the
     payload's edge must be the key's). The key before per-edge answers (no edge chunk) passes."""
     key = str(sample.key_expr)
@@ -58,7 +58,7 @@ def answer_from(sample: zenoh.Sample, keys: Keys, drops: DropCounter, named: str
         drops.drop("bad_key", f"{what} on {key[:100]!r}")
         return False
     if edge and edge != named:
-        drops.drop(f"foreign_{what}", f"{what} naming edge {named[:40]!r} on edge {edge!r}'s key")
+        drops.drop(f"edge_key_{what}", f"{what} naming edge {named[:40]!r} on edge {edge!r}'s key")
         return False
     return True
 

@@ -1,6 +1,6 @@
 """The robot's camera pipeline: each camera frame is detected on the robot or on the edge.
 
-Inputs:  an image source (``coco-clips``, a folder, a video), ``<ns>/data/<robot>/detections``
+Inputs:  an image source (``coco-clips``, a folder, a video), ``<ns>/data/<robot>/detections/**``
          (wire.Detections), the edges present (the robot server's ``EdgePresence``) and their
          status (``<ns>/status/edge/*``: the detector's free share, draining, its network's input:
          frames to that edge are shrunk to it, ``perception.send_size``).

@@ -1,7 +1,7 @@
 """The robot in a fleet of edges: which edge maps it, when it moves, what it hands the next one.
 
 Inputs:  the edges' liveliness (the server's ``EdgePresence``), ``<ns>/status/edge/*``
-         (wire.Status: capacity, robots, draining), ``<ns>/data/<robot>/checkpoint``
+         (wire.Status: capacity, robots, draining), ``<ns>/data/<robot>/checkpoint/**``
          (wire.Checkpoint), the acks the scan pipeline books (told here).
 Outputs: attach queries ``<ns>/ctrl/<robot>/attach/<edge>`` (wire.Attach → wire.AttachReply), on
          the fleet thread only (never in a Zenoh callback: a query waits up to attach_timeout).

@@ -1,7 +1,7 @@
 """The robot's scan pipeline: replays a scan source at sensor rate, sizes each scan with the scale
 policy, streams it to the edge, books every ack.
 
-Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack`` (wire.ScanAck), the
+Inputs:  a scan source (``sim`` or a folder), ``<ns>/data/<robot>/scan_ack/**`` (wire.ScanAck), the
          edges present (the robot server's ``EdgePresence``), the fleet link (robot/fleet.py:
          which edge maps the robot, under which epoch).
 Outputs: ``<ns>/data/<robot>/scan`` (wire.Scan, congestion control BLOCK_FIRST: the first scan that

@@ -5,11 +5,12 @@ Default deny; what each may do, with flows seen from the router (ingress: from t
 egress: to it) and every rule key including the message's key (Zenoh checks inclusion):
 
 * robot R: put its own ``data/R/scan``, ``data/R/frame``, ``status/R``; hold ``alive/robot/R``;
-  subscribe to and receive only its own answers, from every edge (``data/R/scan_ack/**``,
-  ``data/R/detections/**``, ``data/R/checkpoint/**``) and the edges' status (``status/edge/*``:
-  their capacity and load, which the fleet assignment ranks by); query only its own ``ctrl/R/map``,
-  ``ctrl/R/ping/*`` (its round trip to an edge) and ``ctrl/R/attach/*`` (asking any edge to map
-  it) and receive their replies; watch ``alive/edge/*``.
+  subscribe to (``data/R/scan_ack/**``, ...) and receive only its own answers, from every edge under
+  its id (``data/R/scan_ack/*``, ``data/R/detections/*``, ``data/R/checkpoint/*``) and the edges'
+  status (``status/edge/*``: their capacity and load, which the fleet assignment ranks by); query
+  only its own ``ctrl/R/map``, ``ctrl/R/ping/*`` (its round trip to an edge) and
+  ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies; watch
+  ``alive/edge/*``.
 * edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
   checkpoints for any robot under its own id only (``data/*/scan_ack/E``, ...: an edge cannot
   answer in another edge's name, and the robot checks the payload's edge against the key's) and its
@@ -43,6 +44,8 @@ from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.session import DROP_WAIT_US
 
 _PLACEHOLDER = "zoffload-acl-any"
+_EDGE = "zoffload-acl-any-edge"
+RESERVED = (_PLACEHOLDER, _EDGE)  # not identities: the ACL's own wildcard placeholders
 
 
 def _wild(key_of: Callable[[str], str]) -> str:
@@ -53,9 +56,15 @@ def _wild(key_of: Callable[[str], str]) -> str:
     return "/".join(parts)
 
 
-def _answers(key_of: Callable[[str, str], str], edge: str) -> str:
-    """Answers of one kind from ``edge`` to every robot: the robot's chunk as ``*``."""
-    return _wild(lambda r: key_of(r, edge))
+def _answers(key_of: Callable[[str, str], str], edge: str | None = None, robot: str | None = None) -> str:
+    """Answers of one kind (``Keys.scan_ack`` ...) from ``edge`` to ``robot``, either as ``*``: one
+    chunk each, so never the key before per-edge answers (no edge chunk), which no client may put
+    and which must not reach a robot over a link from a router with an older ACL either."""
+    if edge is None:
+        return _answers(lambda r, e: key_of(r, e).replace(_EDGE, "*"), _EDGE, robot)
+    if robot is None:
+        return _wild(lambda r: key_of(r, edge))
+    return key_of(robot, edge)
 
 
 def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
@@ -64,12 +73,16 @@ def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> 
 
 
 def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
-    answers = [k.scan_acks(r), k.detections_to(r), k.checkpoints(r), k.all_edge_status()]
+    # subscribed with ``**`` (an older edge's answers on the key without an edge chunk, where no
+    # ACL runs), received only under an edge's id
+    subscribed = [k.scan_acks(r), k.detections_to(r), k.checkpoints(r), k.all_edge_status()]
+    received = [*(_answers(key_of, robot=r) for key_of in (k.scan_ack, k.detections, k.checkpoint)),
+                k.all_edge_status()]
     ctrl = [k.map(r), _wild(lambda e: k.ping(r, e)), _wild(lambda e: k.attach(r, e))]
     return [
         _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
-        _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], answers),
-        _rule(f"robot_{r}_rx", "egress", ["put"], answers),
+        _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], subscribed),
+        _rule(f"robot_{r}_rx", "egress", ["put"], received),
         _rule(f"robot_{r}_token", "ingress", ["liveliness_token"], [k.robot_alive(r)]),
         _rule(f"robot_{r}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
               [k.any_edge_alive()]),
@@ -116,7 +129,8 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
 
 
 def _router_rules(k: Keys, p: str) -> list[dict[str, Any]]:
-    data = [_wild(k.scan), _wild(k.frame), k.all_scan_acks(), k.all_detections(), _wild(k.checkpoints),
+    data = [_wild(k.scan), _wild(k.frame), *(_answers(key_of) for key_of in (k.scan_ack, k.detections,
+                                                                             k.checkpoint)),
             f"{k.ns}/status/**"]
     ctrl = [k.all_maps(), _wild(k.all_pings), _wild(k.all_attaches)]
     alive = [k.any_robot_alive(), k.any_edge_alive()]
@@ -140,6 +154,8 @@ def access_control(keys: Keys, robots: Sequence[str], edges: Sequence[str], moni
     names = [*robots, *edges, *monitors, *routers]
     for name in names:
         check_id(name, "identity")
+        if name in RESERVED:
+            raise ValueError(f"{name!r} is reserved (the ACL's placeholder), not an identity")
     if len(set(names)) != len(names):
         raise ValueError(f"identities must be distinct: {names}")
     rules: list[dict[str, Any]] = [

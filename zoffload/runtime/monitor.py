@@ -150,7 +150,11 @@ class Pinger:
 
     def _run(self) -> None:
         while not self._stop.wait(self.period):
-            key = self._key_of()
+            try:
+                key = self._key_of()
+            except Exception as exc:  # the caller's function: logged, the pinger lives on
+                log.warning("ping key: %s", exc)
+                key = None
             if key != self.key:  # another edge (or none): its round trip is another's
                 self.key, self.rtt = key, MovingAverage(self.window)
             if key is None:

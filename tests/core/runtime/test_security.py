@@ -51,6 +51,10 @@ def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() ->
     assert allowed(acl, "robot_robot1", "egress", "put", k.scan_ack("robot1", "edge1"))
     for key in (k.scan_acks("robot1"), k.detections_to("robot1"), k.checkpoints("robot1")):
         assert allowed(acl, "robot_robot1", "ingress", "declare_subscriber", key)  # every edge's answers
+    # but only answers under an edge's id reach it: the key before per-edge answers, which no client
+    # may put, does not come over a link from a router with an older ACL either
+    for key in ("zoffload/data/robot1/scan_ack", "zoffload/data/robot1/checkpoint"):
+        assert not allowed(acl, "robot_robot1", "egress", "put", key)
     assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1"))
     assert not allowed(acl, "robot_robot1", "ingress", "query", k.map("robot2"))
     assert not allowed(acl, "robot_robot1", "ingress", "declare_queryable", k.all_maps())
@@ -207,3 +211,15 @@ def test_a_config_file_keeps_its_mode_and_scouting_unless_they_are_given(tmp_pat
     conf = zenoh_config(ZenohSettings(config_file=str(f), mode="router", multicast_scouting=True))
     assert json.loads(conf.get_json("mode")) == "router"
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
+
+
+def test_the_acl_placeholders_are_not_identities() -> None:
+    """An edge named as the ACL's placeholder chunk would have had its id turned into ``*``."""
+    from zoffload.runtime.acl import RESERVED
+
+    for name in RESERVED:
+        with pytest.raises(ValueError, match="reserved"):
+            access_control(Keys(), ["robot1"], [name])
+    linked = access_control(Keys(), ["robot1"], ["edge1"], routers=["rack"])
+    assert allowed(linked, "router_rack", "ingress", "put", Keys().scan_ack("robot1", "edge1"))
+    assert not allowed(linked, "router_rack", "ingress", "put", "zoffload/data/robot1/scan_ack")

@@ -1,9 +1,9 @@
 """The live view's Zenoh side: subscriptions, the map poller, and the one thread that logs.
 
 Subscribed (``<ns>`` the namespace): ``status/<robot>`` and ``status/edge/<edge>`` (1 Hz),
-``data/<robot>/scan_ack``, ``data/<robot>/scan`` (unless ``scans`` is off: every scan crosses to the
+``data/<robot>/scan_ack/<edge>``, ``data/<robot>/scan`` (unless ``scans`` is off: every scan crosses to the
 viewer), ``view/<robot>/preview`` (the robot publishes previews only while a viewer listens),
-``data/<robot>/detections`` and, when ``frames`` is on, ``data/<robot>/frame``. The map comes from
+``data/<robot>/detections/<edge>`` and, when ``frames`` is on, ``data/<robot>/frame``. The map comes from
 the ``ctrl/<robot>/map`` query, every ``map_period`` and only when the map grew.
 
 Zenoh callbacks only keep bytes: the newest message per robot and kind (scans, previews, frames,
