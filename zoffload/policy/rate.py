@@ -51,7 +51,9 @@ the slots). Off by default: robot, edge and emulator share one machine in the ex
 the edge's KISS-ICP on HDL-64 scans makes T jitter by 20 ms on the strong Wi-Fi link too, where
 pacing skipped a third of the scans for nothing (README "Ours"). While the link delivers nothing
 (no ack for ``stall_after`` seconds with scans in flight) scans are skipped too: anything sent
-then would queue behind the stall and arrive stale.
+then would queue behind the stall and arrive stale; and likewise while the newest ack's network
+time stands ``stall_after`` above the path's floor with scans in flight (a queue that deep stands
+on the link: a rain fade on a satellite path, where the window is 7 scans deep).
 
 **Counting.** A grid pass costs about as much as everything else the robot does per scan, so the
 policy does not search: it keeps a curve of point counts per candidate (measured on the first
@@ -105,6 +107,8 @@ class LinkView:
     in_flight: int = 0  # scans sent and not answered yet
     raw_bytes_per_point: float = math.nan  # bytes per point uncompressed (q16d); NaN: always coded
     window_drops: int = 0  # scans held back so far because the window of unanswered ones was full
+    newest_net: float = math.nan  # network time of the newest ack, late ones too [s]; NaN: none
+    floor_net: float = math.nan  # the quickest of the last 100 on this route (edge, epoch) [s]; NaN: < 10
 
 
 @dataclass(frozen=True)
@@ -188,7 +192,8 @@ class LinkAwareScale:
                  grow_slow: float = 0.05, quiet: int = 50, widen: float = 2.0, max_skip: int = 2,
                  stall_after: float = 0.5, jitter_aware: bool = True, compress_share: float = 0.5,
                  refresh: int = 20, raw_share: float = 0.9, jitter_pace: int = 1,
-                 jitter_late: float = 0.25, headroom: float = 1.5, queue_cap: bool = True) -> None:
+                 jitter_late: float = 0.25, headroom: float = 1.5, queue_cap: bool = True,
+                 queue_stall: bool = True) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.in_range = len(self.candidates)
         self.candidates += widened_grid(*voxel_range, widen)
@@ -199,7 +204,7 @@ class LinkAwareScale:
         self.compress_share, self.refresh, self.raw_share = compress_share, refresh, raw_share
         self.jitter_pace, self.jitter_late = jitter_pace, jitter_late
         self.headroom = headroom
-        self.queue_cap = queue_cap
+        self.queue_cap, self.queue_stall = queue_cap, queue_stall
         self.start = min(max(start, self.candidates[0]), self.candidates[self.in_range - 1])
         self.name = "rate"
         self.reset()
@@ -219,7 +224,8 @@ class LinkAwareScale:
         self._window_seen = 0  # window drops already looked at
         self._capped_at = -QUEUE_EVERY  # scan count of the last queue cap
         self._stall_scan = -QUEUE_EVERY  # scan count of the last silence (no ack for stall_after)
-        self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "queue": 0, "passes": 0}
+        self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "queue": 0, "queue_stall": 0,
+                       "passes": 0}
         return self.start
 
     def choose(self, last_t: float, last_v: float) -> float:
@@ -326,18 +332,35 @@ class LinkAwareScale:
         Without this an outage that begins with the window full (a path of ~3 periods) is all
         window drops: none announced, and the policy never learns of the stall."""
         skip = self._stall(link, suffix=" (window full)")
-        if skip is not None:
-            self._stall_scan = self._scans  # (``decide`` marks it in ``update_budget``)
+        if skip is not None and link.since_ack > self.stall_after:
+            self._stall_scan = self._scans  # a silence (``decide`` marks it in ``update_budget``)
         return skip
 
     def _stall(self, link: LinkView, prefix: str = "", suffix: str = "") -> Decision | None:
-        """The stall skip, when no ack came for ``stall_after`` with scans in flight (anything
-        sent then would queue behind the stall); it holds the first late scan after it."""
-        if not (self.stall_after > 0 and link.in_flight > 0 and link.since_ack > self.stall_after):
+        """The stall skip, with scans in flight: when no ack came for ``stall_after`` (anything
+        sent then would queue behind the stall; it holds the first late scan after it), or when
+        the newest ack's network time stood ``stall_after`` above the path's floor (the quickest
+        of the last 100 on the current route, at least 10 known: another edge is another path;
+        ``queue_stall``): a queue that deep stands on the link, and a scan sent now would wait
+        behind it. Without the second, a rain fade on a
+        satellite link (the window 7 scans deep there) queued scans for up to 3.7 s: the window
+        kept it full, and every scan behind came after the robot's ack timeout."""
+        if not (self.stall_after > 0 and link.in_flight > 0):
             return None
-        self._stalled = True
+        if link.since_ack > self.stall_after:
+            self._stalled = True
+            return Decision(self.last_voxel, skip=True, cause="stall",
+                            reason=f"{prefix}stall: no ack for {link.since_ack:.2f} s{suffix}")
+        newest, floor = link.newest_net, link.floor_net
+        if not (self.queue_stall and math.isfinite(newest) and math.isfinite(floor)):
+            return None
+        if newest - floor <= self.stall_after:
+            return None
+        # (not a silence: the late scans after it are sized as the queue made them, so cut)
+        self.counts["queue_stall"] += 1
         return Decision(self.last_voxel, skip=True, cause="stall",
-                        reason=f"{prefix}stall: no ack for {link.since_ack:.2f} s{suffix}")
+                        reason=f"{prefix}stall: a queue on the link (network time {1e3 * newest:.0f} ms, "
+                               f"floor {1e3 * floor:.0f} ms){suffix}")
 
     def decide(self, n_points: int, link: LinkView, count: Callable[[float], int]) -> Decision:
         """The decision for a scan of ``n_points`` points; ``count(v)`` runs the grid pass at

@@ -55,6 +55,11 @@ class ScanLedger:
     route_since: float = -math.inf  # robot clock of the first scan under it
     route_rtt_min: float = math.inf  # the quickest round trip of a scan acked under it [s]
     route_acks: int = 0  # scans acked under it
+    # network time of the newest ack of the current route, late ones too: a queue deeper than the ack
+    # timeout shows only in late acks (``recent`` holds acked scans), and the scans the timeout
+    # expired while they queued no longer count in flight
+    newest_net: float = math.nan
+    route_nets: deque[float] = field(default_factory=lambda: deque(maxlen=100))  # acked, this route
 
     @property
     def records(self) -> dict[int, dict[str, Any]]:
@@ -121,6 +126,8 @@ class ScanLedger:
         self.last_ack_at = recv_stamp
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
+        if self.route is None or _route(rec) == self.route:
+            self.newest_net = rtt - edge_time
         rec.update(rtt=rtt, network_time=rtt - edge_time, interarrival=ack.interarrival,
                    queue_time=ack.queue_time, proc_time=ack.proc_time, map_points=ack.map_points,
                    keypoints=ack.keypoints, sigma=ack.sigma)
@@ -150,6 +157,7 @@ class ScanLedger:
                 if (self.route is None or route == self.route) and rtt >= 0:
                     self.route_acks += 1
                     self.route_rtt_min = min(self.route_rtt_min, rtt)
+                    self.route_nets.append(rtt - edge_time)
                 if self.first_acked_at is None:
                     self.first_acked_at = recv_stamp
             return bucket
@@ -202,7 +210,14 @@ class ScanLedger:
         """Scans go to ``route`` (edge, epoch) from now on (a move: a new one)."""
         if route != self.route:
             self.route, self.route_since = route, now
-            self.route_rtt_min, self.route_acks = math.inf, 0
+            self.route_rtt_min, self.route_acks, self.newest_net = math.inf, 0, math.nan
+            self.route_nets.clear()
+
+    @property
+    def floor_net(self) -> float:
+        """The path's floor: the quickest network time of the last 100 scans acked on the current
+        route (NaN before 10): another edge's path is another floor."""
+        return min(self.route_nets) if len(self.route_nets) >= 10 else math.nan
 
     @property
     def in_flight_here(self) -> int:

@@ -381,6 +381,8 @@ class ScanStreamer:
                 since_ack=led.since_answer(now),
                 in_flight=led.in_flight_here,
                 window_drops=led.window_drops,
+                newest_net=led.newest_net,
+                floor_net=led.floor_net,
                 raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
     # Main loop

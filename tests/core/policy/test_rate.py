@@ -385,3 +385,41 @@ def test_a_scan_the_window_holds_back_in_a_stall_is_a_stall_skip() -> None:
     # stall skipping off: the window's
     q = LinkAwareScale((0.01, 0.07), stall_after=0.0)
     assert q.held_back(LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=5.0, in_flight=3)) is None
+
+
+def test_a_deep_queue_on_the_link_is_a_stall_and_its_late_scans_still_cut() -> None:
+    """A rain fade on a satellite path (floor 0.6 s, window 7 scans): acks kept coming, so no
+    silence, but each one later than the last, up to 3.7 s, most after the ack timeout (so the
+    window no longer counted their scans); every scan the window let through queued behind them.
+    Now, with scans in flight and the newest ack's network time (late ones too) stall_after above
+    the floor, the scan is skipped as a stall (announced); not a silence, so the late scans after
+    it still cut the budget."""
+    pts = _scan()
+    p = LinkAwareScale((0.01, 0.07), stall_after=0.5)
+    p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
+    p.budget = 80_000.0
+    floor = tuple(AckInfo(40_000, 0.60, 0.1) for _ in range(10))
+    link = LinkView(0.1, 4e5, 6.0, 0.1, acks=10, recent=floor, in_flight=5, floor_net=0.6)
+    p.update_budget(link)
+    p.budget = 80_000.0
+    assert not p.decide(len(pts), link, counter(pts)).skip  # at the floor: sent
+    queued = floor + (AckInfo(40_000, 1.2, 0.5),)
+    d = p.decide(len(pts), replace(link, acks=11, recent=queued, last_t=0.5, newest_net=1.2), counter(pts))
+    assert d.skip and d.cause == "stall" and "queue" in d.reason and p.counts["queue_stall"] == 1
+    assert p.counts["late_size"] == 1 and p.budget < 80_000.0  # the late one cut: not a silence
+    assert not p._stalled
+    # nothing in flight: the queue has drained, send
+    assert not p.decide(len(pts), replace(link, acks=11, recent=queued, in_flight=0, newest_net=1.2),
+                        counter(pts)).skip
+    # the window full behind the queue: a stall skip too (announced), not a window drop
+    d = p.held_back(replace(link, acks=11, recent=queued, since_ack=0.1, newest_net=1.2))
+    assert d is not None and d.cause == "stall" and "queue" in d.reason
+    # within stall_after of the floor: no stall; and off with queue_stall=False
+    assert p.held_back(replace(link, newest_net=1.0)) is None
+    # no floor known yet on this route (fewer than 10 acks, or a move): no queue to judge
+    assert p.held_back(replace(link, newest_net=3.0, floor_net=math.nan)) is None
+    q = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=False)
+    q.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
+    q.update_budget(link)
+    q.budget = 80_000.0
+    assert not q.decide(len(pts), replace(link, acks=11, recent=queued, newest_net=1.2), counter(pts)).skip

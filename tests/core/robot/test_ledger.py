@@ -209,6 +209,33 @@ def test_late_acks_of_the_old_route_do_not_measure_the_new_path() -> None:
     assert led.route_acks == 0 and led.window(3, 0.1) == 3
 
 
+def test_the_newest_network_time_counts_late_acks_and_only_the_current_route() -> None:
+    """What the policy's queue stall reads: a queue deeper than the ack timeout shows only in late
+    acks (``recent`` holds acked scans only)."""
+    led = ScanLedger()
+    acked_after(led, [0.6] * 9, route=("edgeA", 1))
+    assert led.newest_net == pytest.approx(0.6 - 0.021) and math.isnan(led.floor_net)  # 9 acks
+    acked_after(led, [0.7], route=("edgeA", 1))
+    assert led.floor_net == pytest.approx(0.6 - 0.021)
+    seq = len(led.records)
+    led.produced()
+    led.handed_off(seq, {"edge": "edgeA", "epoch": 1})
+    led.published(seq, send_stamp=10.0, record={})
+    led.expire(11.5, 1.0)  # the ack timeout: lost...
+    assert led.on_ack(edge_ack(seq, 10.0, 0.001, 0.02), recv_stamp=13.0) == "late"  # ...it queued 3 s
+    assert led.newest_net == pytest.approx(3.0 - 0.021) and len(led.recent) == 10  # (acked only)
+    led.on_route(("edgeB", 2), now=13.1)  # a move: the old route's queue and floor are not the new one's
+    assert math.isnan(led.newest_net) and math.isnan(led.floor_net) and not led.route_nets
+    acked_after(led, [0.9], route=("edgeA", 1))  # (acks of the old route after a move do not count)
+    led.on_route(("edgeB", 2), now=20.0)
+    seq = len(led.records)
+    led.produced()
+    led.handed_off(seq, {"edge": "edgeA", "epoch": 1})
+    led.published(seq, send_stamp=20.0, record={})
+    led.on_ack(edge_ack(seq, 20.0, 0.001, 0.02), recv_stamp=22.0)
+    assert math.isnan(led.newest_net)
+
+
 def test_only_scans_the_edge_registered_count_for_the_window() -> None:
     led = ScanLedger()
     acked_with(led, [(0.3, 0.1)] * 10, status="dropped")  # dropped by the edge: no registration time
