@@ -193,7 +193,7 @@ class LinkAwareScale:
                  stall_after: float = 0.5, jitter_aware: bool = True, compress_share: float = 0.5,
                  refresh: int = 20, raw_share: float = 0.9, jitter_pace: int = 1,
                  jitter_late: float = 0.25, headroom: float = 1.5, queue_cap: bool = True,
-                 queue_stall: bool = True) -> None:
+                 queue_stall: bool = False) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.in_range = len(self.candidates)
         self.candidates += widened_grid(*voxel_range, widen)

@@ -395,7 +395,7 @@ def test_a_deep_queue_on_the_link_is_a_stall_and_its_late_scans_still_cut() -> N
     the floor, the scan is skipped as a stall (announced); not a silence, so the late scans after
     it still cut the budget."""
     pts = _scan()
-    p = LinkAwareScale((0.01, 0.07), stall_after=0.5)
+    p = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=True)
     p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
     p.budget = 80_000.0
     floor = tuple(AckInfo(40_000, 0.60, 0.1) for _ in range(10))
