@@ -29,9 +29,10 @@ the periods it was meant to take) is one of three kinds (``late_cause``):
 the last ones, so the rule above reads them as jitter and holds the budget, and the window of
 unanswered scans (the robot's ``max_in_flight``) holds the surplus back before the policy sees it.
 So when the window held scans back while the edge kept answering and the newest network times
-stand a period above the path's floor (the quickest of the last 100: a long path fills the window
-too, at its floor), the budget is capped at what the link delivered in the last second (times
-``margin``; with the window full, that is its capacity), at most once a second.
+stand a period above the path's floor (``ScanLedger.floor_net``, the quickest of the last 10 s: a
+long path fills the window too, at its floor), the budget is capped at what the link delivered in
+the last second (times ``margin``; with the window full, that is its capacity), at most once a
+second.
 
 Growth stops at what the link has shown it carries (``validated``): 1.5 times the largest recent
 scan, or the bytes per period a scan moved at (its bytes over its network time), whichever is
@@ -51,9 +52,11 @@ the slots). Off by default: robot, edge and emulator share one machine in the ex
 the edge's KISS-ICP on HDL-64 scans makes T jitter by 20 ms on the strong Wi-Fi link too, where
 pacing skipped a third of the scans for nothing (README "Ours"). While the link delivers nothing
 (no ack for ``stall_after`` seconds with scans in flight) scans are skipped too: anything sent
-then would queue behind the stall and arrive stale; and likewise while the newest ack's network
-time stands ``stall_after`` above the path's floor with scans in flight (a queue that deep stands
-on the link: a rain fade on a satellite path, where the window is 7 scans deep).
+then would queue behind the stall and arrive stale; and likewise (``queue_stall``) while the newest
+ack's network time stands ``stall_after`` above the path's floor with scans queued behind it (a
+queue that deep stands on the link: a rain fade on a satellite path, where the window is 7 scans
+deep), at most ``queue_stall_max`` in a row (a path whose delay rose for good is not a queue: its
+floor follows in 10 s, and meanwhile one scan in five goes).
 
 **Counting.** A grid pass costs about as much as everything else the robot does per scan, so the
 policy does not search: it keeps a curve of point counts per candidate (measured on the first
@@ -70,7 +73,6 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -108,7 +110,8 @@ class LinkView:
     raw_bytes_per_point: float = math.nan  # bytes per point uncompressed (q16d); NaN: always coded
     window_drops: int = 0  # scans held back so far because the window of unanswered ones was full
     newest_net: float = math.nan  # network time of the newest ack, late ones too [s]; NaN: none
-    floor_net: float = math.nan  # the quickest of the last 100 on this route (edge, epoch) [s]; NaN: < 10
+    floor_net: float = math.nan  # the path's floor on this route (ScanLedger.floor_net) [s]; NaN: < 10
+    queued: int = 0  # scans of this route sent after the newest answered one, unanswered (expired too)
 
 
 @dataclass(frozen=True)
@@ -193,7 +196,7 @@ class LinkAwareScale:
                  stall_after: float = 0.5, jitter_aware: bool = True, compress_share: float = 0.5,
                  refresh: int = 20, raw_share: float = 0.9, jitter_pace: int = 1,
                  jitter_late: float = 0.25, headroom: float = 1.5, queue_cap: bool = True,
-                 queue_stall: bool = False) -> None:
+                 queue_stall: bool = False, queue_stall_max: int = 4) -> None:
         self.candidates = candidate_grid(*voxel_range)
         self.in_range = len(self.candidates)
         self.candidates += widened_grid(*voxel_range, widen)
@@ -204,7 +207,7 @@ class LinkAwareScale:
         self.compress_share, self.refresh, self.raw_share = compress_share, refresh, raw_share
         self.jitter_pace, self.jitter_late = jitter_pace, jitter_late
         self.headroom = headroom
-        self.queue_cap, self.queue_stall = queue_cap, queue_stall
+        self.queue_cap, self.queue_stall, self.queue_stall_max = queue_cap, queue_stall, queue_stall_max
         self.start = min(max(start, self.candidates[0]), self.candidates[self.in_range - 1])
         self.name = "rate"
         self.reset()
@@ -220,12 +223,12 @@ class LinkAwareScale:
         self._skip_left = 0
         self._stalled = False  # skipped for a stall since the last ack
         self.event = ""  # what the last new ack did to the budget
-        self._nets: deque[float] = deque(maxlen=100)  # network times of the last acks (the path's floor)
+        self._queue_skips = 0  # queue stall skips in a row
         self._window_seen = 0  # window drops already looked at
         self._capped_at = -QUEUE_EVERY  # scan count of the last queue cap
         self._stall_scan = -QUEUE_EVERY  # scan count of the last silence (no ack for stall_after)
         self.counts = {"late_size": 0, "late_jitter": 0, "late_stall": 0, "queue": 0, "queue_stall": 0,
-                       "passes": 0}
+                       "queue_stall_cap": 0, "passes": 0}
         return self.start
 
     def choose(self, last_t: float, last_v: float) -> float:
@@ -242,9 +245,7 @@ class LinkAwareScale:
         if link.acks >= 0:
             if link.acks == self._acks_seen:
                 return self.budget  # nothing new from the edge
-            fresh = link.acks - self._acks_seen if self._acks_seen >= 0 else 1
             self._acks_seen = link.acks
-            self._nets.extend(a.net for a in link.recent[-fresh:] if math.isfinite(a.net))
         deadline = self.deadline if self.deadline is not None else 1.05 * link.period
         slot = max(1, link.last_slot)
         late = link.last_t > deadline * slot
@@ -281,11 +282,11 @@ class LinkAwareScale:
         or ``SILENT`` where that is 0; scans in flight or not) the last second's deliveries are not
         a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
         stream's, not the link's."""
+        floor = link.floor_net
         if (self._scans - self._stall_scan < QUEUE_EVERY or self._scans - self._capped_at < QUEUE_EVERY
-                or len(self._nets) < 10):
+                or not math.isfinite(floor)):
             return
         newest = [a.net for a in link.recent[-3:] if math.isfinite(a.net)]
-        floor = min(self._nets)
         carried = link.acked_bytes_per_s * link.period * self.margin
         if not newest or _median(newest) <= floor + link.period or not (0 < carried < self.budget):
             return
@@ -337,26 +338,37 @@ class LinkAwareScale:
         return skip
 
     def _stall(self, link: LinkView, prefix: str = "", suffix: str = "") -> Decision | None:
-        """The stall skip, with scans in flight: when no ack came for ``stall_after`` (anything
-        sent then would queue behind the stall; it holds the first late scan after it), or when
-        the newest ack's network time stood ``stall_after`` above the path's floor (the quickest
-        of the last 100 on the current route, at least 10 known: another edge is another path;
-        ``queue_stall``): a queue that deep stands on the link, and a scan sent now would wait
-        behind it. Without the second, a rain fade on a
-        satellite link (the window 7 scans deep there) queued scans for up to 3.7 s: the window
-        kept it full, and every scan behind came after the robot's ack timeout."""
-        if not (self.stall_after > 0 and link.in_flight > 0):
+        """The stall skip: with scans in flight, when no ack came for ``stall_after`` (anything
+        sent then would queue behind the stall; it holds the first late scan after it); and
+        (``queue_stall``) with scans queued on the link (sent after the newest one answered, the
+        ack timeout's expired ones too), when the newest ack's network time stood ``stall_after``
+        above the path's floor (``LinkView.floor_net``: another edge is another path): a queue
+        that deep stands on the link, and a scan sent now would wait behind it. Without it, a
+        rain fade on a satellite link (the window 7 scans deep there) queued scans for up to
+        3.7 s: the window kept it full, and every scan behind came after the ack timeout. At
+        most ``queue_stall_max`` such skips in a row, then a scan goes: the newest network time
+        is a scan's that waited, so a path whose delay rose for good would hold the robot to a
+        scan per round trip until the floor follows (``FLOOR_SPAN`` of the ledger). A stall
+        takes the place of any pacing skip left."""
+        if self.stall_after <= 0:
             return None
-        if link.since_ack > self.stall_after:
+        if link.in_flight > 0 and link.since_ack > self.stall_after:
             self._stalled = True
+            self._skip_left = 0
             return Decision(self.last_voxel, skip=True, cause="stall",
                             reason=f"{prefix}stall: no ack for {link.since_ack:.2f} s{suffix}")
         newest, floor = link.newest_net, link.floor_net
-        if not (self.queue_stall and math.isfinite(newest) and math.isfinite(floor)):
+        if not (self.queue_stall and link.queued > 0 and math.isfinite(newest) and math.isfinite(floor)
+                and newest - floor > self.stall_after):
+            self._queue_skips = 0
             return None
-        if newest - floor <= self.stall_after:
+        if self._queue_skips >= self.queue_stall_max:  # this one goes
+            self._queue_skips = 0
+            self.counts["queue_stall_cap"] += 1
             return None
         # (not a silence: the late scans after it are sized as the queue made them, so cut)
+        self._queue_skips += 1
+        self._skip_left = 0
         self.counts["queue_stall"] += 1
         return Decision(self.last_voxel, skip=True, cause="stall",
                         reason=f"{prefix}stall: a queue on the link (network time {1e3 * newest:.0f} ms, "

@@ -32,6 +32,7 @@ from zoffload.robot.scanlog import ScanLog
 ACK_BUCKETS = {"ok": "acked", "dropped": "edge_dropped", "refused": "edge_refused"}
 PATH_ACKS = 5  # acks of a route before its quickest round trip sizes the window
 PATH_MAX = 4  # the window a long path gets: at most this times the base
+FLOOR_SPAN = 10.0  # the path's floor: the quickest network time of the acks of the last this many s
 
 
 @dataclass
@@ -57,9 +58,17 @@ class ScanLedger:
     route_acks: int = 0  # scans acked under it
     # network time of the newest ack of the current route, late ones too: a queue deeper than the ack
     # timeout shows only in late acks (``recent`` holds acked scans), and the scans the timeout
-    # expired while they queued no longer count in flight
+    # expired while they queued no longer count in flight. Only scans the edge registered ("ok")
+    # with both of its times known: a busy edge's "dropped" answer carries its queue, not the link's
     newest_net: float = math.nan
-    route_nets: deque[float] = field(default_factory=lambda: deque(maxlen=100))  # acked, this route
+    route_nets: deque[tuple[float, float]] = field(  # (robot clock, network time) of those, this route
+        default_factory=lambda: deque(maxlen=200))
+    _route_answered: int = -1  # the newest scan of the current route the edge answered (any status)
+    _route_lost: deque[int] = field(default_factory=lambda: deque(maxlen=100))  # expired on the route
+    # the route's round trip as TCP estimates it (RFC 6298: smoothed, and its mean deviation), from
+    # every answer of the route, late ones too; NaN before the first: what ``ack_timeout`` follows
+    srtt: float = math.nan
+    rttvar: float = math.nan
 
     @property
     def records(self) -> dict[int, dict[str, Any]]:
@@ -127,7 +136,13 @@ class ScanLedger:
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
         if self.route is None or _route(rec) == self.route:
-            self.newest_net = rtt - edge_time
+            self._route_answered = max(self._route_answered, ack.seq)
+            if rtt >= 0:
+                self._round_trip(rtt)
+            if (ack.status == "ok" and rtt >= 0 and math.isfinite(ack.queue_time)
+                    and math.isfinite(ack.proc_time)):
+                self.newest_net = rtt - edge_time
+                self.route_nets.append((recv_stamp, rtt - edge_time))
         rec.update(rtt=rtt, network_time=rtt - edge_time, interarrival=ack.interarrival,
                    queue_time=ack.queue_time, proc_time=ack.proc_time, map_points=ack.map_points,
                    keypoints=ack.keypoints, sigma=ack.sigma)
@@ -157,7 +172,6 @@ class ScanLedger:
                 if (self.route is None or route == self.route) and rtt >= 0:
                     self.route_acks += 1
                     self.route_rtt_min = min(self.route_rtt_min, rtt)
-                    self.route_nets.append(rtt - edge_time)
                 if self.first_acked_at is None:
                     self.first_acked_at = recv_stamp
             return bucket
@@ -190,6 +204,8 @@ class ScanLedger:
             rec = self.records[seq]
             rec["status"] = "lost"
             route = _route(rec)
+            if self.route is None or route == self.route:
+                self._route_lost.append(seq)
             if newest is not None and newest[:2] == route and newest[2] > seq:
                 rec["overtaken"] = True
                 self.counters["lost_overtaken"] += 1
@@ -212,12 +228,53 @@ class ScanLedger:
             self.route, self.route_since = route, now
             self.route_rtt_min, self.route_acks, self.newest_net = math.inf, 0, math.nan
             self.route_nets.clear()
+            self._route_answered = -1
+            self._route_lost.clear()
+            self.srtt = self.rttvar = math.nan
+
+    def _round_trip(self, rtt: float) -> None:
+        if math.isnan(self.srtt):
+            self.srtt, self.rttvar = rtt, rtt / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
+            self.srtt = 0.875 * self.srtt + 0.125 * rtt
+
+    def ack_timeout(self, base: float, most: float | None) -> float:
+        """Seconds before an unanswered scan of the current route is lost: the route's round trip
+        plus four times its deviation (TCP's retransmission timeout, RFC 6298), at least ``base``
+        and at most ``most`` (``base`` before the route's first answer, or when ``most`` is None or
+        not above ``base``).
+        A fixed second booked every scan ``late`` on a path whose round trip had risen above it
+        (a satellite link rerouted 600 ms longer: 1.8 s), so no edge pose was ever used and the
+        robot mapped every scan itself; and in a satellite rain fade 13-43 scans a run."""
+        if most is None or math.isnan(self.srtt) or most <= base:
+            return base
+        return min(most, max(base, self.srtt + 4 * self.rttvar))
 
     @property
     def floor_net(self) -> float:
-        """The path's floor: the quickest network time of the last 100 scans acked on the current
-        route (NaN before 10): another edge's path is another floor."""
-        return min(self.route_nets) if len(self.route_nets) >= 10 else math.nan
+        """The path's floor: the quickest network time of the scans the edge registered on the
+        current route, late ones too, over the ``FLOOR_SPAN`` seconds before the newest of them
+        (NaN before 10 on the route): another edge's path is another floor, and a path whose base
+        delay rose for good (a satellite handover, a reroute) has a new floor ``FLOOR_SPAN`` later.
+        Taken from on-time acks alone, of the last 100, a floor never followed such a rise (the
+        acks above it were all late) and the queue stall held the robot to a scan per round trip."""
+        nets = self.route_nets
+        if len(nets) < 10:
+            return math.nan
+        since = nets[-1][0] - FLOOR_SPAN
+        return min(net for at, net in nets if at >= since)
+
+    @property
+    def queued_here(self) -> int:
+        """Scans of the current route sent after the newest one the edge answered and not answered
+        themselves: in flight, or expired by the ack timeout while they queued (no longer in
+        flight, still on the link ahead of the next scan). A scan lost for good stops counting once
+        a later one is answered (answers come in order)."""
+        newest, recs = self._route_answered, self.records
+        lost = sum(1 for s in self._route_lost if s > newest and recs.get(s, {}).get("status") == "lost")
+        return lost + sum(1 for s in self.pending
+                          if s > newest and (self.route is None or _route(recs.get(s, {})) == self.route))
 
     @property
     def in_flight_here(self) -> int:

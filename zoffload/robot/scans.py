@@ -76,6 +76,7 @@ class StreamOptions:
     quant_fraction: float = 0.1
     zstd_level: int = 1  # q16d's compression level
     ack_timeout: float = 1.0
+    ack_timeout_max: float | None = None  # set: the timeout follows the route's round trip up to it
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
     window_edge_time: bool = True  # ... plus the scans the edge holds (ScanLedger.window)
     window_path: bool = True  # ... and at least the scans the path's round trip holds
@@ -383,6 +384,7 @@ class ScanStreamer:
                 window_drops=led.window_drops,
                 newest_net=led.newest_net,
                 floor_net=led.floor_net,
+                queued=led.queued_here,
                 raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
     # Main loop
@@ -401,7 +403,7 @@ class ScanStreamer:
             while not self.stop.is_set():
                 reading = sensor.take(timeout=0.05)
                 with self._lock:
-                    expired = self.ledger.expire(time.monotonic(), o.ack_timeout)
+                    expired = self.ledger.expire(time.monotonic(), self._ack_timeout())
                     self._book_overwrites(sensor)
                     idle = expired and self.ledger.in_flight_here == 0
                 if idle and self.fleet_state is not None:
@@ -444,10 +446,16 @@ class ScanStreamer:
             self.ledger.drop_at_source(None, "overrun")
         self._booked_overwrites += new
 
+    def _ack_timeout(self) -> float:
+        """The current route's ack timeout (``ScanLedger.ack_timeout``; under the lock)."""
+        return self.ledger.ack_timeout(self.opts.ack_timeout, self.opts.ack_timeout_max)
+
     def _drain(self) -> None:
         """Let the sender finish, give in-flight scans their ack timeout, book the rest as lost."""
-        deadline = time.monotonic() + self.opts.ack_timeout
-        left = self.sender.close(timeout=self.opts.ack_timeout)
+        with self._lock:
+            timeout = self._ack_timeout()
+        deadline = time.monotonic() + timeout
+        left = self.sender.close(timeout=timeout)
         with self._lock:
             if left is not None:
                 self.ledger.drop_at_source(left.seq, "unsent")
@@ -588,7 +596,8 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         robot_id=settings.robot_id, rate_hz=settings.rate_hz or source.rate_hz, replay=settings.replay,
         max_scans=settings.max_scans, voxel_range=settings.voxel_range, coding=settings.scan_coding,
         quant_fraction=settings.quant_fraction, zstd_level=settings.zstd_level,
-        ack_timeout=settings.ack_timeout, max_in_flight=settings.max_in_flight,
+        ack_timeout=settings.ack_timeout, ack_timeout_max=settings.ack_timeout_max,
+        max_in_flight=settings.max_in_flight,
         window_edge_time=settings.window_edge_time, window_path=settings.window_path,
         out_dir=Path(settings.out_dir) if settings.out_dir else None,
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,

@@ -488,6 +488,10 @@ class RobotSettings(_Strict):
         description="rate policy: periods per scan it may take to absorb the link's jitter; 1 = never",
     )
     ack_timeout: float = Field(default=1.0, gt=0, description="seconds before an unanswered scan is lost")
+    ack_timeout_max: float | None = Field(
+        default=None, gt=0,
+        description="if set: the ack timeout follows the round trip (TCP's) from ack_timeout up to this",
+    )
     # Like a TCP window, the limit keeps the link carrying whole scans: the excess is dropped at
     # the source, newest kept.
     max_in_flight: int = Field(

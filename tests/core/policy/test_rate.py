@@ -115,10 +115,11 @@ def test_a_late_scan_that_queued_cuts_the_budget_to_what_the_link_delivers() -> 
 
 def _acks_in(nets: list[float], acks: int, drops: int, delivered: float = 300_000.0,
              since_ack: float = 0.05) -> LinkView:
-    """An on-time ack (T = one period) after ``nets``' scans, ``drops`` window drops so far."""
+    """An on-time ack (T = one period) after ``nets``' scans, ``drops`` window drops so far; the
+    ledger's floor the quickest of them (10 at least)."""
     recent = tuple(AckInfo(50_000, n, 0.1) for n in nets[-24:])
     return LinkView(0.1, delivered, 6.0, 0.1, acks=acks, recent=recent, since_ack=since_ack,
-                    window_drops=drops)
+                    window_drops=drops, floor_net=min(nets[-100:]) if len(nets) >= 10 else math.nan)
 
 
 def _run_in(p: LinkAwareScale, nets: list[float], drops: list[int], **kw: float) -> None:
@@ -391,35 +392,58 @@ def test_a_deep_queue_on_the_link_is_a_stall_and_its_late_scans_still_cut() -> N
     """A rain fade on a satellite path (floor 0.6 s, window 7 scans): acks kept coming, so no
     silence, but each one later than the last, up to 3.7 s, most after the ack timeout (so the
     window no longer counted their scans); every scan the window let through queued behind them.
-    Now, with scans in flight and the newest ack's network time (late ones too) stall_after above
-    the floor, the scan is skipped as a stall (announced); not a silence, so the late scans after
-    it still cut the budget."""
+    Now, with scans queued (sent after the newest answered one, expired ones too) and the newest
+    ack's network time (late ones too) stall_after above the floor, the scan is skipped as a stall
+    (announced); not a silence, so the late scans after it still cut the budget."""
     pts = _scan()
-    p = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=True)
+    p = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=True, queue_stall_max=3)
     p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
     p.budget = 80_000.0
     floor = tuple(AckInfo(40_000, 0.60, 0.1) for _ in range(10))
-    link = LinkView(0.1, 4e5, 6.0, 0.1, acks=10, recent=floor, in_flight=5, floor_net=0.6)
+    link = LinkView(0.1, 4e5, 6.0, 0.1, acks=10, recent=floor, in_flight=5, queued=5, floor_net=0.6)
     p.update_budget(link)
     p.budget = 80_000.0
     assert not p.decide(len(pts), link, counter(pts)).skip  # at the floor: sent
     queued = floor + (AckInfo(40_000, 1.2, 0.5),)
-    d = p.decide(len(pts), replace(link, acks=11, recent=queued, last_t=0.5, newest_net=1.2), counter(pts))
+    deep = replace(link, acks=11, recent=queued, last_t=0.5, newest_net=1.2)
+    d = p.decide(len(pts), deep, counter(pts))
     assert d.skip and d.cause == "stall" and "queue" in d.reason and p.counts["queue_stall"] == 1
     assert p.counts["late_size"] == 1 and p.budget < 80_000.0  # the late one cut: not a silence
     assert not p._stalled
-    # nothing in flight: the queue has drained, send
-    assert not p.decide(len(pts), replace(link, acks=11, recent=queued, in_flight=0, newest_net=1.2),
-                        counter(pts)).skip
+    # the scans the ack timeout expired still queue: nothing in flight, a stall all the same
+    assert p.decide(len(pts), replace(deep, in_flight=0), counter(pts)).cause == "stall"
+    # nothing queued behind the newest answer: the queue has drained, send
+    assert not p.decide(len(pts), replace(deep, queued=0), counter(pts)).skip
     # the window full behind the queue: a stall skip too (announced), not a window drop
-    d = p.held_back(replace(link, acks=11, recent=queued, since_ack=0.1, newest_net=1.2))
+    d = p.held_back(replace(deep, since_ack=0.1))
     assert d is not None and d.cause == "stall" and "queue" in d.reason
-    # within stall_after of the floor: no stall; and off with queue_stall=False
+    # within stall_after of the floor: no stall
     assert p.held_back(replace(link, newest_net=1.0)) is None
     # no floor known yet on this route (fewer than 10 acks, or a move): no queue to judge
     assert p.held_back(replace(link, newest_net=3.0, floor_net=math.nan)) is None
+    # and off with queue_stall=False
     q = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=False)
     q.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
     q.update_budget(link)
     q.budget = 80_000.0
-    assert not q.decide(len(pts), replace(link, acks=11, recent=queued, newest_net=1.2), counter(pts)).skip
+    assert not q.decide(len(pts), deep, counter(pts)).skip
+
+
+def test_a_queue_stall_lets_a_scan_through_after_a_few_and_ends_pacing() -> None:
+    """The newest network time is a scan's that waited: on a path whose delay rose for good it
+    stays above the old floor until the floor follows. At most ``queue_stall_max`` stall skips in
+    a row, then a scan goes; and a stall takes the place of a pacing skip left from before."""
+    pts = _scan()
+    p = LinkAwareScale((0.01, 0.07), stall_after=0.5, queue_stall=True, queue_stall_max=3)
+    p.choose_cloud(pts, LinkView(0.0, math.nan, math.nan, 0.1))
+    floor = tuple(AckInfo(40_000, 0.60, 0.1) for _ in range(10))
+    link = LinkView(0.1, 4e5, 6.0, 0.1, acks=10, recent=floor, in_flight=2, queued=2, floor_net=0.6,
+                    newest_net=1.8)
+    p.update_budget(link)
+    skips = [p.decide(len(pts), link, counter(pts)).skip for _ in range(9)]
+    assert skips == [True, True, True, False] * 2 + [True]
+    assert p.counts["queue_stall"] == 7 and p.counts["queue_stall_cap"] == 2
+    p._skip_left = 2  # a scan paced over three periods...
+    assert p.decide(len(pts), link, counter(pts)).cause == "stall" and p._skip_left == 0  # ...ends
+    p._skip_left = 2
+    assert p.held_back(replace(link, since_ack=0.8)) is not None and p._skip_left == 0  # (a silence too)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from zoffload.protocol import wire
-from zoffload.robot.ledger import ScanLedger
+from zoffload.robot.ledger import FLOOR_SPAN, ScanLedger
 
 
 def ack(seq: int, stamp: float, status: str = "ok", t: float = 0.1) -> wire.ScanAck:
@@ -236,6 +236,63 @@ def test_the_newest_network_time_counts_late_acks_and_only_the_current_route() -
     assert math.isnan(led.newest_net)
 
 
+def _sent(led: ScanLedger, stamp: float, route: tuple[str, int] = ("edgeA", 1)) -> int:
+    seq = len(led.records)
+    led.produced()
+    led.handed_off(seq, {"edge": route[0], "epoch": route[1]})
+    led.published(seq, send_stamp=stamp, record={})
+    return seq
+
+
+def test_the_floor_follows_a_path_whose_delay_rose_for_good() -> None:
+    """The floor is the quickest network time over the ``FLOOR_SPAN`` seconds before the newest
+    ack, late acks too: a base delay that rose 1.2 s (a handover) is the new floor that much later;
+    taken from on-time acks of the last 100 it stayed the old one (every ack was late)."""
+    led = ScanLedger()
+    acked_after(led, [0.6] * 20, route=("edgeA", 1))
+    assert led.floor_net == pytest.approx(0.6 - 0.021)
+    t = 2.0
+    while t < 2.0 + FLOOR_SPAN + 1.0:  # one scan per round trip, every one late
+        seq = _sent(led, t)
+        led.expire(t + 1.1, 1.0)
+        assert led.on_ack(edge_ack(seq, t, 0.001, 0.02), recv_stamp=t + 1.8) == "late"
+        if t + 1.8 < 2.0 + FLOOR_SPAN:
+            assert led.floor_net == pytest.approx(0.6 - 0.021), t
+        t += 0.5
+    assert led.floor_net == pytest.approx(1.8 - 0.021) and led.newest_net == pytest.approx(1.8 - 0.021)
+
+
+def test_a_busy_edges_answers_are_not_a_network_time_and_expired_scans_still_queue() -> None:
+    """``newest_net`` and the floor take scans the edge registered with both its times known (a
+    "dropped" answer's round trip holds the edge's queue, not the link's); ``queued_here`` counts
+    the route's scans after the newest answered one, the ack timeout's expired ones too, until a
+    later answer shows them lost for good."""
+    led = ScanLedger()
+    acked_after(led, [0.6] * 10, route=("edgeA", 1))
+    newest = led.newest_net
+    seq = _sent(led, 5.0)
+    dropped = edge_ack(seq, 5.0, math.nan, math.nan, status="dropped")
+    assert led.on_ack(dropped, recv_stamp=8.0) == "edge_dropped"
+    seq = _sent(led, 5.1)
+    assert led.on_ack(edge_ack(seq, 5.1, 0.001, math.nan), recv_stamp=8.0) == "acked"  # (no proc time)
+    assert led.newest_net == newest and len(led.route_nets) == 10
+    assert led.queued_here == 0
+    a, _b, c = _sent(led, 6.0), _sent(led, 6.1), _sent(led, 6.2)
+    assert led.queued_here == 3
+    led.expire(7.15, 1.0)  # a and b expire: still on the link
+    assert led.in_flight_here == 1 and led.queued_here == 3
+    assert led.on_ack(edge_ack(a, 6.0, 0.001, 0.02), recv_stamp=8.5) == "late"
+    assert led.queued_here == 2
+    assert led.on_ack(edge_ack(c, 6.2, 0.001, 0.02), recv_stamp=8.7) == "acked"  # b: lost for good
+    assert led.queued_here == 0
+    _sent(led, 9.0)
+    assert led.queued_here == 1
+    led.on_route(("edgeB", 2), now=9.1)  # a move: the old route's scans are not the new one's queue
+    assert led.queued_here == 0
+    _sent(led, 9.1, route=("edgeB", 2))
+    assert led.queued_here == 1
+
+
 def test_only_scans_the_edge_registered_count_for_the_window() -> None:
     led = ScanLedger()
     acked_with(led, [(0.3, 0.1)] * 10, status="dropped")  # dropped by the edge: no registration time
@@ -271,3 +328,30 @@ def test_before_any_ack_there_is_no_silence() -> None:
     led = ScanLedger()
     led.on_route(("edgeA", 1), now=10.0)
     assert led.since_answer(30.0) == 0.0
+
+
+def test_the_ack_timeout_follows_the_route_s_round_trip() -> None:
+    """TCP's timeout (smoothed round trip + 4 deviations, RFC 6298) between ``ack_timeout`` and
+    its maximum, from every answer of the route, late ones too: with a fixed second every scan of
+    a path rerouted to a 1.8 s round trip was booked late and no edge pose was ever used."""
+    led = ScanLedger()
+    acked_after(led, [0.3] * 5, route=("edgeA", 1))
+    assert led.ack_timeout(1.0, 4.0) == 1.0  # a quick path: the floor
+    t = 1.0
+    seq = _sent(led, t)  # the path's round trip rises to 1.8 s: the first scan expires, then answers
+    led.expire(t + 1.05, led.ack_timeout(1.0, 4.0))
+    assert led.on_ack(edge_ack(seq, t, 0.001, 0.02), recv_stamp=t + 1.8) == "late"
+    t += 0.1
+    grown = led.ack_timeout(1.0, 4.0)
+    assert 1.8 < grown <= 4.0
+    seq = _sent(led, t)
+    led.expire(t + 1.5, grown)
+    assert led.in_flight == 1  # no longer lost at 1.5 s...
+    assert led.on_ack(edge_ack(seq, t, 0.001, 0.02), recv_stamp=t + 1.8) == "acked"  # ...but acked
+    assert led.ack_timeout(1.0, 1.0) == led.ack_timeout(1.0, None) == 1.0  # fixed: no maximum above it
+    for _ in range(20):  # a queue of seconds: at most the maximum
+        seq = _sent(led, t)
+        led.on_ack(edge_ack(seq, t, 0.001, 0.02), recv_stamp=t + 9.0)
+    assert led.ack_timeout(1.0, 4.0) == 4.0
+    led.on_route(("edgeB", 2), now=t)  # another edge, another path: from the floor again
+    assert led.ack_timeout(1.0, 4.0) == 1.0

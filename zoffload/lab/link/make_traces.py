@@ -15,6 +15,8 @@
   log space, one step a second) with a downlink of 20-50 Mbps, and a rain fade every 20-40 s that
   cuts the uplink to 15-40 % for 2-6 s (the modem's adaptive coding) and adds 10-40 ms of delay.
   A round trip of at least 0.52 s: 5-6 scans on the path at 10 Hz with no queue anywhere.
+* ``satellite-reroute``: the satellite link whose one-way delay rises by 600 ms for good at 30 s
+  (the ground station's backhaul rerouted): a base delay that changes is not a queue.
 
 Each trace is written for two seeds: seed 1 (``cellular``, ``wifi-congested``), which the policy
 may be developed against, and seed 2 (``cellular-heldout``, ``wifi-congested-heldout``), which is
@@ -113,6 +115,12 @@ def satellite(seed: int, duration: float = DURATION) -> list[Row]:
     return rows
 
 
+def satellite_reroute(seed: int, duration: float = DURATION, at: float = 30.0,
+                      rise_ms: float = 600.0) -> list[Row]:
+    return [(t, up, down, delay + (rise_ms if t >= at else 0.0), jitter, outage)
+            for t, up, down, delay, jitter, outage in satellite(seed, duration)]
+
+
 def _reflect(x: float, lo: float, hi: float) -> float:
     """``x`` folded back into [lo, hi] (a random walk that bounces off its limits)."""
     while not lo <= x <= hi:
@@ -143,6 +151,8 @@ TRACES: dict[str, tuple[Callable[[int], list[Row]], int, str]] = {
     "satellite-heldout": (satellite, 2,
                           "geostationary satellite return link, seed 2: HELD OUT, final tables only, "
                           "never tuned on"),
+    "satellite-reroute": (satellite_reroute, 3, "geostationary satellite return link, seed 3, its delay "
+                          "600 ms longer from 30 s on (development)"),
 }
 
 
