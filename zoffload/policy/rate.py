@@ -348,13 +348,12 @@ class LinkAwareScale:
         3.7 s: the window kept it full, and every scan behind came after the ack timeout. At
         most ``queue_stall_max`` such skips in a row, then a scan goes: the newest network time
         is a scan's that waited, so a path whose delay rose for good would hold the robot to a
-        scan per round trip until the floor follows (``FLOOR_SPAN`` of the ledger). A stall
-        takes the place of any pacing skip left."""
+        scan per round trip until the floor follows (``FLOOR_SPAN`` of the ledger). A queue
+        stall takes the place of any pacing skip left."""
         if self.stall_after <= 0:
             return None
         if link.in_flight > 0 and link.since_ack > self.stall_after:
             self._stalled = True
-            self._skip_left = 0
             return Decision(self.last_voxel, skip=True, cause="stall",
                             reason=f"{prefix}stall: no ack for {link.since_ack:.2f} s{suffix}")
         newest, floor = link.newest_net, link.floor_net
