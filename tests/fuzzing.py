@@ -67,6 +67,8 @@ def valid_messages(robot: str = "robot1", edge: str = "edge1") -> dict[str, byte
         "pong": wire.Pong(edge=edge, stamp=1.0),
         "map": wire.MapReply(robot=robot, scans=1, points=_PTS[:10], seqs=np.array([0]),
                              poses=np.eye(4)[None]),
+        "map_v7": wire.MapReply(robot=robot, scans=1, points=_PTS[:10], seqs=np.array([0]),
+                                poses=np.eye(4)[None], edge=edge),
         "checkpoint": cp,
         "attach": wire.Attach(robot=robot, epoch=2, max_range=50.0, voxel_max=0.07, rate_hz=10.0,
                               checkpoint=wire.encode(cp), local_seqs=np.array([11, 12]),

@@ -30,7 +30,7 @@ def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Pa
                          tmp_path / "robot.log")
             wait_token(s, KEYS.robot_alive("robot1"))
             assert robot.wait(120) == 0, robot.text()
-            reply = list(s.get(KEYS.map("robot1"), timeout=10))[0]
+            reply = list(s.get(KEYS.map("robot1", "edge1"), timeout=10))[0]
             m = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
         finally:
             code = edge.sigint()

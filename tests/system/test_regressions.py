@@ -168,7 +168,7 @@ def test_seq_beyond_2_63_is_refused_and_map_queries_still_work(edge: Edge) -> No
                      "healthy") <= PEAK_MB
     assert edge.watch.value("drop.malformed") == before + 2
     edge.still_serves()
-    reply = list(edge.session.get(KEYS.map("healthy"), timeout=10))[0].ok
+    reply = list(edge.session.get(KEYS.map("healthy", "edge1"), timeout=10))[0].ok
     assert reply is not None
     m = wire.decode(reply.payload.to_bytes(), expect=wire.MapReply)
     assert m.scans >= 1 and int(m.seqs.max()) < 2**63

@@ -7,8 +7,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +22,9 @@ from tests.system.procs import Proc, script
 from tests.system.secure import Deployment, deploy, deploy_linked
 from zoffload.lab.runner import StatusWatcher
 from zoffload.protocol import wire
+from zoffload.runtime.drops import Drops
 from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.maps import fetch_map
 from zoffload.runtime.session import open_session
 
 pytestmark = pytest.mark.system
@@ -122,7 +126,7 @@ def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
                  if r.ok is not None]
         assert edges == [KEYS.edge_alive("edge1")]  # the forged edge token was not forwarded
         assert stolen == []  # robot1 cannot even listen to other robots' traffic
-        replies = list(attacker.get(KEYS.map("robot2"), timeout=3))
+        replies = list(attacker.get(KEYS.map("robot2", "edge1"), timeout=3))
         assert not [r for r in replies if r.ok is not None]
         token.undeclare()
         for s in (attacker, spy, victim, monitor):
@@ -352,6 +356,59 @@ def test_an_authorised_edge_cannot_answer_in_another_edges_name(free_port: int, 
         for s in (attacker, monitor):
             s.close()
     finally:
+        for p in reversed(procs):
+            p.sigint()
+        assert d.stop() == 0
+
+
+def test_an_authorised_edge_cannot_answer_a_map_query_in_another_edges_name(free_port: int,
+                                                                            tmp_path: Path) -> None:
+    """Was: every edge identity declared and answered ``ctrl/*/map``, so a compromised edge2 answered
+    map queries for robot1, which edge1 maps, in edge1's name. Now an edge declares and answers only
+    its own ``ctrl/*/map/<edge>`` (the router refuses edge2's queryable on edge1's key and never sends
+    it edge1's queries), a querier asks each edge by name, and a map naming another edge than asked
+    is dropped (``edge_key_map``): the monitor (the lab's runner) still gets edge1's own map."""
+    d = deploy(tmp_path, free_port, ["robot1"], ["edge1", "edge2"])
+    procs: list[Proc] = []
+    sessions: list[zenoh.Session] = []
+    asked: dict[str, int] = {"edge1_key": 0, "before_key": 0, "own_key": 0}
+    try:
+        attacker = open_session(d.settings("edge2"))  # edge2's real identity, compromised
+        sessions.append(attacker)
+        forged = wire.encode(wire.MapReply(robot="robot1", scans=777, points=np.zeros((10, 3), np.float32),
+                                           seqs=np.arange(777), poses=np.repeat(np.eye(4)[None], 777, 0),
+                                           edge="edge1"))
+
+        def answer(where: str) -> Callable[[zenoh.Query], None]:
+            def on(query: zenoh.Query) -> None:
+                asked[where] += 1
+                query.reply(query.key_expr, forged)
+            return on
+
+        held = [attacker.declare_queryable(KEYS.all_maps("edge1"), answer("edge1_key")),  # refused
+                attacker.declare_queryable(KEYS.map_before("robot1"), answer("before_key")),  # refused
+                attacker.declare_queryable(KEYS.all_maps("edge2"), answer("own_key"))]  # edge1's name
+        monitor = open_session(d.settings("monitor"))
+        sessions.append(monitor)
+        robot1_mapped_by_edge1(d, tmp_path, monitor, procs)
+
+        # every queryable on edge1's key is asked: only edge1's own answers come back
+        replies = [r.ok for r in monitor.get(KEYS.map("robot1", "edge1"), target=zenoh.QueryTarget.ALL,
+                                             consolidation=zenoh.ConsolidationMode.NONE, timeout=10)
+                   if r.ok is not None]
+        maps = [wire.decode(r.payload.to_bytes(), expect=wire.MapReply) for r in replies]
+        assert len(maps) == 1 and maps[0].edge == "edge1" and 1 <= maps[0].scans <= 30, maps
+        # the runner's query, told to ask edge2 first: its map in edge1's name is dropped, edge1's taken
+        drops = Drops(logging.getLogger("test.maps"))
+        got = fetch_map(monitor, KEYS, "robot1", ["edge2"], drops, timeout=10)
+        assert got is not None and got.edge == "edge1" and got.scans == maps[0].scans
+        assert drops.snapshot() == {"edge_key_map": 1} and asked["own_key"] >= 1
+        assert asked["edge1_key"] == 0 and asked["before_key"] == 0  # never reached edge2
+        for h in held:
+            h.undeclare()
+    finally:
+        for session in sessions:
+            session.close()
         for p in reversed(procs):
             p.sigint()
         assert d.stop() == 0

@@ -5,8 +5,10 @@ Inputs:  ``<ns>/data/*/scan`` (wire.Scan).
 Outputs: ``<ns>/data/<robot>/scan_ack/<edge>`` (wire.ScanAck, one per scan, also for scans it had to
          drop or could not register; ``refused`` for robots not admitted, rate-limited);
          ``<ns>/data/<robot>/checkpoint/<edge>`` (wire.Checkpoint, to attached robots).
-Queries: ``<ns>/ctrl/<robot>/map`` (wire.MapReply: the robot's registered map and the poses in
-         memory; one reply built at a time, others answered "busy");
+Queries: ``<ns>/ctrl/<robot>/map/<edge>`` (wire.MapReply naming this edge: the robot's registered
+         map and the poses in memory, for a robot this edge maps, else an error reply; one reply
+         built at a time, others answered "busy"; only its own key, as attaches: a querier asks
+         each edge by name, runtime/maps.py);
          ``<ns>/ctrl/<robot>/attach/<edge>`` (wire.Attach → wire.AttachReply).
 On eviction and stop: with a ``map_dir``, the robot's map, trajectory and counters (edge/export.py).
 
@@ -113,7 +115,7 @@ class MappingService:
         for w in self._workers:
             w.start()
         self._sub = session.declare_subscriber(self.keys.all_scans(), self.drops.guard(self._on_scan, "scan"))
-        self._map_q = session.declare_queryable(self.keys.all_maps(),
+        self._map_q = session.declare_queryable(self.keys.all_maps(self.edge_id),
                                                 self.drops.guard(self._on_map_query, "map query"))
         self._attach_q = session.declare_queryable(self.keys.all_attaches(self.edge_id),
                                                    self.attach_drops.guard(self._on_attach, "attach"))
@@ -572,8 +574,8 @@ class MappingService:
         try:
             seqs, poses = rs.mapper.trajectory()
             reply = wire.MapReply(robot=rs.robot, scans=rs.mapper.scans, points=rs.mapper.map_cloud(),
-                                  seqs=seqs, poses=poses)
-            query.reply(self.keys.map(rs.robot), wire.encode(reply))
+                                  seqs=seqs, poses=poses, edge=self.edge_id)
+            query.reply(self.keys.map(rs.robot, self.edge_id), wire.encode(reply))
         finally:
             self._map_reply.release()
 

@@ -3,8 +3,8 @@ that ``ros2 topic echo`` and RViz read (no ROS install on the edge).
 
 Inputs (on the edge's own session): ``<ns>/data/*/scan_ack/**`` and ``<ns>/data/*/detections/**`` that
 this edge publishes (subscribed session-local), ``<ns>/data/*/scan`` and ``<ns>/data/*/frame`` for
-the robots' capture stamps, and each robot's map (``map_source``, or the map queryable
-``<ns>/ctrl/<robot>/map`` asked every ``map_period``).
+the robots' capture stamps, and each robot's map (``map_source``, or this edge's map queryable
+``<ns>/ctrl/<robot>/map/<edge>`` asked every ``map_period``: its own edge only, runtime/maps.py).
 Outputs (per robot, ``{robot}`` in names is its id; one ROS node, ``zoffload_edge``):
 
 * ``/{robot}/odom`` nav_msgs/Odometry: the pose of each registered scan (world frame → sensor
@@ -35,7 +35,7 @@ import zenoh
 
 from zoffload.protocol import wire
 from zoffload.protocol.intake import robot_in_key
-from zoffload.protocol.keys import Keys
+from zoffload.protocol.keys import Keys, check_id
 from zoffload.ros2 import messages
 from zoffload.ros2.keys import DEFAULT_QOS, KEEP_LAST, LATCHED, RELIABLE, VOLATILE, Qos
 from zoffload.ros2.node import Ros2Node, Ros2Publisher
@@ -44,6 +44,7 @@ from zoffload.ros2.session import Ros2Link, Ros2SessionError
 from zoffload.runtime.config import EdgeSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.maps import ask_map
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.ros2")
@@ -108,8 +109,10 @@ class Ros2Service:
 
     def __init__(self, keys: Keys, link: Ros2Link, names: Ros2Names = Ros2Names(),
                  share_session: bool = False, map_period: float = 2.0, map_max_points: int = 2_000_000,
-                 map_source: Callable[[str], np.ndarray | None] | None = None) -> None:
+                 map_source: Callable[[str], np.ndarray | None] | None = None,
+                 edge_id: str = "edge1") -> None:
         self.keys = keys
+        self.edge_id = check_id(edge_id, "edge id")  # the edge whose maps it asks for
         self.link = link
         self.names = names
         self.share_session = share_session
@@ -146,9 +149,9 @@ class Ros2Service:
             self._tf = self._node.publisher("/tf", TF, TF_QOS)
         local = zenoh.Locality.SESSION_LOCAL  # this edge's own answers only
         self._subs = [
-            session.declare_subscriber(self.keys.all_scan_acks(), self.drops.guard(self._on_ack, "ack"),
+            session.declare_subscriber(self.keys.answers("scan_ack"), self.drops.guard(self._on_ack, "ack"),
                                        allowed_origin=local),
-            session.declare_subscriber(self.keys.all_detections(),
+            session.declare_subscriber(self.keys.answers("detections"),
                                        self.drops.guard(self._on_detections, "detections"),
                                        allowed_origin=local),
             session.declare_subscriber(self.keys.all_scans(), self.drops.guard(self._on_capture, "scan")),
@@ -278,10 +281,8 @@ class Ros2Service:
 
     def _query_map(self, robot: str) -> np.ndarray | None:
         assert self._session is not None
-        for reply in self._session.get(self.keys.map(robot), timeout=10.0):
-            if reply.ok is not None:
-                return wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply).points
-        return None
+        reply = ask_map(self._session, self.keys, robot, [self.edge_id], self.drops)
+        return reply.points if reply is not None else None
 
     # Status, eviction, shutdown
     def status(self) -> dict[str, float]:
@@ -324,4 +325,4 @@ def ros2_service(settings: EdgeSettings, keys: Keys,
                       tf=r.tf, world_frame=r.world_frame, sensor_frame=r.sensor_frame,
                       camera_frame=r.camera_frame)
     return Ros2Service(keys, r.link(r.node), names, share_session=r.share_session, map_period=r.map_period,
-                       map_max_points=r.map_max_points, map_source=map_source)
+                       map_max_points=r.map_max_points, map_source=map_source, edge_id=settings.edge_id)

@@ -1,7 +1,7 @@
 """zoffload-edge: one Zenoh session, presence and status, and the services that do the work.
 
 Services (each in its own module, all on the server's session):
-  mapping   ``<ns>/data/*/scan`` → ``<ns>/data/<robot>/scan_ack/<edge>``, ``<ns>/ctrl/<robot>/map``
+  mapping   ``<ns>/data/*/scan`` → ``<ns>/data/<robot>/scan_ack/<edge>``, ``<ns>/ctrl/<robot>/map/<edge>``
             (edge/mapping.py: one bounded KISS-ICP per robot on a fixed pool of workers, maps
             exported to ``map_dir`` on eviction and shutdown).
   detector  ``<ns>/data/*/frame`` → ``<ns>/data/<robot>/detections/<edge>`` (edge/detection.py), when the

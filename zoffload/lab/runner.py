@@ -21,6 +21,7 @@ from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
 from zoffload.runtime.lifecycle import wait_in_slices
 from zoffload.runtime.loading import write_effective
+from zoffload.runtime.maps import fetch_map
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
 
@@ -160,14 +161,6 @@ def link_clock_start(log: Path) -> float | None:
     return None
 
 
-def fetch_map(session: zenoh.Session, keys: Keys, robot: str, timeout: float = 20.0) -> wire.MapReply | None:
-    for reply in session.get(keys.map(robot), timeout=timeout):
-        if reply.ok is not None:
-            msg = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
-            return msg
-    return None
-
-
 # The robot's TCP send buffer behind the emulator: small, so a slow link reaches Zenoh's congestion
 # control instead of hiding megabytes in the kernel.
 ROBOT_SNDBUF = 65536
@@ -265,7 +258,8 @@ def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace:
                 code = robot_p.stop()
             if code != 0:
                 print(f"\nthe robot exited with code {code}:\n" + robot_p.tail())
-            reply = (fetch_map(session, keys, robot.robot_id)
+            # from the edge it started, by name (a wildcard query reaches no edge under the ACL)
+            reply = (fetch_map(session, keys, robot.robot_id, [edge.edge_id], timeout=20.0)
                      if fetch and (code == 0 or keep_interrupted) else None)
             status.close()
     finally:

@@ -14,7 +14,7 @@ from zoffload.protocol.keys import ID, Keys
 if TYPE_CHECKING:
     import zenoh
 
-M = TypeVar("M", wire.Scan, wire.Frame)
+M = TypeVar("M", wire.Scan, wire.Frame, wire.MapReply)
 
 
 class DropCounter(Protocol):
@@ -35,7 +35,7 @@ def decode_from_robot(sample: zenoh.Sample, expect: type[M], robot: str, drops: 
                       limits: wire.Limits = wire.DEFAULT_LIMITS) -> M | None:
     """``robot``'s message from a Zenoh sample, or None after counting it as a drop:
     ``malformed`` (not a valid message of that type within ``limits``) or ``foreign`` (the payload
-    names another robot than the key)."""
+    names another robot than the key, or than the query asked about)."""
     try:
         msg = wire.decode(sample.payload.to_bytes(), expect=expect, limits=limits)
     except wire.WireError as exc:
@@ -61,6 +61,23 @@ def answer_from(sample: zenoh.Sample, keys: Keys, drops: DropCounter, named: str
         drops.drop(f"edge_key_{what}", f"{what} naming edge {named[:40]!r} on edge {edge!r}'s key")
         return False
     return True
+
+
+def map_from(sample: zenoh.Sample, keys: Keys, robot: str, edge: str, drops: DropCounter,
+             limits: wire.Limits = wire.DEFAULT_LIMITS) -> wire.MapReply | None:
+    """``robot``'s map from a reply to the query asking ``edge`` (``keys.map``; ``edge`` "": the key
+    before per-edge maps, ``keys.map_before``, an older edge's), or None after counting a drop:
+    ``edge_key_map`` (the reply's key or payload names another edge than asked: under the ACL an
+    edge answers only its own key), or ``decode_from_robot``'s (``malformed``, ``foreign``)."""
+    key = str(sample.key_expr)
+    if key != (keys.map(robot, edge) if edge else keys.map_before(robot)):
+        drops.drop("edge_key_map", f"map of {robot} asked of edge {edge!r} came on {key[:100]!r}")
+        return None
+    msg = decode_from_robot(sample, wire.MapReply, robot, drops, f"map from edge {edge!r}", limits)
+    if msg is not None and msg.edge != edge:
+        drops.drop("edge_key_map", f"map of {robot} asked of edge {edge!r} names edge {msg.edge[:40]!r}")
+        return None
+    return msg
 
 
 def edge_status(sample: zenoh.Sample, keys: Keys, drops: DropCounter) -> wire.Status | None:

@@ -12,7 +12,7 @@ key                                   primitive   payload
 ``<ns>/data/<robot>/checkpoint/<e>``  pub/sub     ``wire.Checkpoint`` edge → robot, every few scans
 ``<ns>/ctrl/<robot>/attach/<edge>``   queryable   ``wire.Attach`` → ``wire.AttachReply`` (edge)
 ``<ns>/view/<robot>/preview``         pub/sub     ``wire.Preview`` robot → viewers, while one listens
-``<ns>/ctrl/<robot>/map``             queryable   ``wire.MapReply`` (registered map + trajectory)
+``<ns>/ctrl/<robot>/map/<edge>``      queryable   ``wire.MapReply`` answered by that edge (map + trajectory)
 ``<ns>/ctrl/<robot>/ping/<edge>``     queryable   ``wire.Pong`` answered by that edge (liveness RTT)
 ``<ns>/status/<robot>``               pub/sub     ``wire.Status`` robot counters, 1 Hz
 ``<ns>/status/edge/<edge>``           pub/sub     ``wire.Status`` edge counters, 1 Hz
@@ -29,6 +29,13 @@ payload names another edge than its key (``protocol/intake.answer_from``): an ed
 answer in another edge's name. Before 2026-11-29 they went on ``<ns>/data/<robot>/<answer>``, with
 no edge chunk; a robot still reads that key (an older edge's answers; a router with the ACL refuses
 puts on it), an older robot does not read the new ones: upgrade robots first.
+
+**Map queries** go to one edge by name (``<ns>/ctrl/<robot>/map/<edge>``), as pings and attaches:
+the ACL lets an edge declare and answer only its own, a reply names its edge (``MapReply.edge``)
+and a querier drops one naming another edge than it asked (``runtime/maps.py``: it asks the edge
+that maps the robot, else every live edge). Before 2026-11-29 any edge answered ``<ns>/ctrl/<robot>/map``
+(``map_before``) for any robot; a querier still asks it when no edge answered on its own key (an
+older edge), an older querier does not ask the new ones: upgrade queriers (viewer, monitors) first.
 """
 
 from __future__ import annotations
@@ -47,6 +54,11 @@ def check_id(value: str, what: str = "id") -> str:
             "Zenoh key chunk)"
         )
     return value
+
+
+def _id_or_any(value: str, what: str) -> str:
+    """A valid id, or ``*`` (one chunk: any id) for subscriptions and ACL rules."""
+    return value if value == "*" else check_id(value, what)
 
 
 class Keys:
@@ -68,41 +80,48 @@ class Keys:
     def all_frames(self) -> str:
         return f"{self.ns}/data/*/frame"
 
-    # Answers, edge → robot, under the answering edge's id (the module's docstring); a robot reads
-    # every edge's (``**``: the key before per-edge answers too)
+    # Answers, edge → robot, under the answering edge's id (the module's docstring)
     ANSWERS = ("scan_ack", "detections", "checkpoint")
 
+    def answer(self, kind: str, robot: str, edge: str) -> str:
+        """The key of ``edge``'s answers of ``kind`` (one of ``ANSWERS``) to ``robot``. Either id may
+        be ``*``: one chunk (every robot's, every edge's), so never the key before per-edge answers,
+        which has no edge chunk (the ACL's rules)."""
+        robot, edge = _id_or_any(robot, "robot id"), _id_or_any(edge, "edge id")
+        return f"{self.ns}/data/{robot}/{self._kind(kind)}/{edge}"
+
+    def answers(self, kind: str, robot: str = "*") -> str:
+        """What a subscriber to ``robot``'s answers of ``kind`` declares (``*``: every robot's): every
+        edge's, and (``**``) the key before per-edge answers, an older edge's."""
+        return f"{self.ns}/data/{_id_or_any(robot, 'robot id')}/{self._kind(kind)}/**"
+
+    def _kind(self, kind: str) -> str:
+        if kind not in self.ANSWERS:
+            raise ValueError(f"{kind!r} is not an answer ({', '.join(self.ANSWERS)})")
+        return kind
+
+    def _one(self, kind: str, robot: str, edge: str) -> str:
+        """``answer`` of one robot and one edge: a key to put on, so ``*`` is refused."""
+        return self.answer(kind, check_id(robot, "robot id"), check_id(edge, "edge id"))
+
+    # The answers by name: one robot's from one edge, and a robot's subscription
     def scan_ack(self, robot: str, edge: str) -> str:
-        return self._answer(robot, "scan_ack", edge)
+        return self._one("scan_ack", robot, edge)
 
     def scan_acks(self, robot: str) -> str:
-        return self._answers(robot, "scan_ack")
-
-    def all_scan_acks(self, edge: str | None = None) -> str:
-        """Every robot's acks from ``edge``, or from every edge."""
-        return self._answers("*", "scan_ack", edge)
+        return self.answers("scan_ack", robot)
 
     def detections(self, robot: str, edge: str) -> str:
-        return self._answer(robot, "detections", edge)
+        return self._one("detections", robot, edge)
 
     def detections_to(self, robot: str) -> str:
-        return self._answers(robot, "detections")
-
-    def all_detections(self, edge: str | None = None) -> str:
-        return self._answers("*", "detections", edge)
+        return self.answers("detections", robot)
 
     def checkpoint(self, robot: str, edge: str) -> str:
-        return self._answer(robot, "checkpoint", edge)
+        return self._one("checkpoint", robot, edge)
 
     def checkpoints(self, robot: str) -> str:
-        return self._answers(robot, "checkpoint")
-
-    def _answer(self, robot: str, kind: str, edge: str) -> str:
-        return f"{self.ns}/data/{check_id(robot, 'robot id')}/{kind}/{check_id(edge, 'edge id')}"
-
-    def _answers(self, robot: str, kind: str, edge: str | None = None) -> str:
-        robot = robot if robot == "*" else check_id(robot, "robot id")
-        return f"{self.ns}/data/{robot}/{kind}/{'**' if edge is None else check_id(edge, 'edge id')}"
+        return self.answers("checkpoint", robot)
 
     def answering_edge(self, key: str) -> str | None:
         """The edge id in an answer's key: "" on the key before per-edge answers, None when ``key``
@@ -114,12 +133,17 @@ class Keys:
             return ""
         return parts[4] if len(parts) == 5 and ID.match(parts[4]) else None
 
-    # Control (queryables)
-    def map(self, robot: str) -> str:
-        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/map"
+    # Map: a querier asks edge E for robot N's map by name (a wildcard query would not reach an edge
+    # under the ACL, whose rule names its id); E's queryable answers only its own key
+    def map(self, robot: str, edge: str) -> str:
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/map/{check_id(edge, 'edge id')}"
 
-    def all_maps(self) -> str:
-        return f"{self.ns}/ctrl/*/map"
+    def all_maps(self, edge: str) -> str:
+        return f"{self.ns}/ctrl/*/map/{check_id(edge, 'edge id')}"
+
+    def map_before(self, robot: str) -> str:
+        """The map key before per-edge map keys, which an older edge still answers (any edge's)."""
+        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/map"
 
     # Ping: robot N asks edge E for a pong (the round trip to the edge its frames go to); E's
     # queryable answers only its own key, as it answers only its own attaches

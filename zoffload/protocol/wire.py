@@ -12,7 +12,7 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build reads 1 to 5. Version 2 only added fields with defaults (the assignment
+Versions: this build reads 1 to 7. Version 2 only added fields with defaults (the assignment
 epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
 attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
 (a frame shrunk to the edge detector's input). Version 4 added the codec version a frame's sender
@@ -24,7 +24,9 @@ added a checkpoint's local map coded as a scan's q16d payload (``Checkpoint.pack
 the size of float32, so a finer map for the same link) and the codec version an attaching robot
 reads (``Attach.reads``); the robot says 6 and sends a coded checkpoint only to an edge whose
 status says it reads 6, and an edge codes the checkpoints it sends a robot only when that
-robot's attach said 6 (``Checkpoint.plain`` turns a coded one back into float32). A
+robot's attach said 6 (``Checkpoint.plain`` turns a coded one back into float32). Version 7 added
+the answering edge of a map reply (``MapReply.edge``), sent only on the per-edge map key
+(``keys.map``), which only a querier that reads 7 asks (an older one asks the key before it). A
 message is sent as the lowest version that carries its fields away from their defaults, else as
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
@@ -32,7 +34,7 @@ detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival
 answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
 everything this one sends it (a passive listener of an older build, such as its viewer, refuses
 the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
-about the label: a message is read by its fields (each checked), whatever version between 1 and 6
+about the label: a message is read by its fields (each checked), whatever version between 1 and 7
 it says it is.
 """
 
@@ -49,7 +51,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5, 6)
+READS = (1, 2, 3, 4, 5, 6, 7)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -159,8 +161,11 @@ def _num(default: Any = dataclasses.MISSING, lo: float = -math.inf, hi: float = 
 
 
 def _text(default: Any = dataclasses.MISSING, choices: tuple[str, ...] | None = None, max_len: int = 1000,
-          ident: bool = False) -> Any:
-    return field(default=default, metadata={"choices": choices, "max_len": max_len, "ident": ident})
+          ident: bool = False, since: int = 1) -> Any:
+    """A text field; one added in a codec version above 2 (``since``) is left out at its default, as
+    ``_num``'s."""
+    return field(default=default, metadata={"choices": choices, "max_len": max_len, "ident": ident,
+                                            "since": since})
 
 
 SEQ = Num(0, SEQ_MAX)
@@ -351,6 +356,9 @@ class MapReply(Message):
     points: np.ndarray = _array(ArraySpec("<f4", (-1, 3), cap="max_map_points"))
     seqs: np.ndarray = _array(ArraySpec("<i8", (-1,), cap="max_map_points"))
     poses: np.ndarray = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid", cap="max_map_points"))
+    # Version 7: the answering edge ("": an edge older than per-edge map keys, on the key before
+    # them); a querier drops a reply naming another edge than it asked (runtime/maps.py)
+    edge: str = _text("", max_len=ID_MAX, since=7)
 
 
 @dataclass(frozen=True)

@@ -8,18 +8,21 @@ egress: to it) and every rule key including the message's key (Zenoh checks incl
   subscribe to (``data/R/scan_ack/**``, ...) and receive only its own answers, from every edge under
   its id (``data/R/scan_ack/*``, ``data/R/detections/*``, ``data/R/checkpoint/*``) and the edges'
   status (``status/edge/*``: their capacity and load, which the fleet assignment ranks by); query
-  only its own ``ctrl/R/map``, ``ctrl/R/ping/*`` (its round trip to an edge) and
-  ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies; watch
+  only its own ``ctrl/R/map/*`` (its map, from an edge by name), ``ctrl/R/ping/*`` (its round trip
+  to an edge) and ``ctrl/R/attach/*`` (asking any edge to map it) and receive their replies; watch
   ``alive/edge/*``.
 * edge E: subscribe to and receive every robot's scans and frames; put acks, detections and
   checkpoints for any robot under its own id only (``data/*/scan_ack/E``, ...: an edge cannot
   answer in another edge's name, and the robot checks the payload's edge against the key's) and its
-  own ``status/edge/E``; declare and answer the ``ctrl/*/map`` queryable and its own
-  ``ctrl/*/ping/E`` and ``ctrl/*/attach/E``; hold ``alive/edge/E``; watch
-  ``alive/robot/*`` and ``alive/edge/*``, and receive the other edges' status (``status/edge/*``:
-  whether one has room for a robot it sheds). An edge cannot answer another edge's attach or ping queries.
-* monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map``, watch
-  ``alive/**``; never put.
+  own ``status/edge/E``; declare and answer its own ``ctrl/*/map/E``, ``ctrl/*/ping/E`` and
+  ``ctrl/*/attach/E`` queryables only (it cannot answer a map, attach or ping query in another
+  edge's name, and a querier drops a map reply naming another edge than it asked); hold
+  ``alive/edge/E``; watch ``alive/robot/*`` and ``alive/edge/*``, and receive the other edges'
+  status (``status/edge/*``: whether one has room for a robot it sheds).
+* monitor M (the lab's runner, a dashboard): receive ``status/**``, query ``ctrl/*/map/*`` (each
+  edge by name: Zenoh checks the query's key against the edge's rule, so a wildcard query for
+  ``ctrl/R/map/*`` reaches no edge), watch ``alive/**``; never put. Nobody may use the key before
+  per-edge maps (``ctrl/R/map``), which any edge answered.
 * router P (another router linked to this one, holding P's certificate): what its robots' and
   edges' traffic needs to cross the link, in both directions, for any robot and edge id: puts of
   scans, frames, answers and statuses; subscription, queryable and liveliness declarations;
@@ -44,8 +47,7 @@ from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.session import DROP_WAIT_US
 
 _PLACEHOLDER = "zoffload-acl-any"
-_EDGE = "zoffload-acl-any-edge"
-RESERVED = (_PLACEHOLDER, _EDGE)  # not identities: the ACL's own wildcard placeholders
+RESERVED = (_PLACEHOLDER,)  # not an identity: the ACL's own wildcard placeholder
 
 
 def _wild(key_of: Callable[[str], str]) -> str:
@@ -56,17 +58,6 @@ def _wild(key_of: Callable[[str], str]) -> str:
     return "/".join(parts)
 
 
-def _answers(key_of: Callable[[str, str], str], edge: str | None = None, robot: str | None = None) -> str:
-    """Answers of one kind (``Keys.scan_ack`` ...) from ``edge`` to ``robot``, either as ``*``: one
-    chunk each, so never the key before per-edge answers (no edge chunk), which no client may put
-    and which must not reach a robot over a link from a router with an older ACL either."""
-    if edge is None:
-        return _answers(lambda r, e: key_of(r, e).replace(_EDGE, "*"), _EDGE, robot)
-    if robot is None:
-        return _wild(lambda r: key_of(r, edge))
-    return key_of(robot, edge)
-
-
 def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages),
             "key_exprs": list(keys)}
@@ -74,11 +65,11 @@ def _rule(rid: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> 
 
 def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
     # subscribed with ``**`` (an older edge's answers on the key without an edge chunk, where no
-    # ACL runs), received only under an edge's id
-    subscribed = [k.scan_acks(r), k.detections_to(r), k.checkpoints(r), k.all_edge_status()]
-    received = [*(_answers(key_of, robot=r) for key_of in (k.scan_ack, k.detections, k.checkpoint)),
-                k.all_edge_status()]
-    ctrl = [k.map(r), _wild(lambda e: k.ping(r, e)), _wild(lambda e: k.attach(r, e))]
+    # ACL runs), received only under an edge's id (one chunk: never the key without one, which no
+    # client may put and which must not reach a robot over a link from a router with an older ACL)
+    subscribed = [*(k.answers(kind, r) for kind in k.ANSWERS), k.all_edge_status()]
+    received = [*(k.answer(kind, r, "*") for kind in k.ANSWERS), k.all_edge_status()]
+    ctrl = [_wild(lambda e: k.map(r, e)), _wild(lambda e: k.ping(r, e)), _wild(lambda e: k.attach(r, e))]
     return [
         _rule(f"robot_{r}_put", "ingress", ["put"], [k.scan(r), k.frame(r), k.robot_status(r)]),
         _rule(f"robot_{r}_sub", "ingress", ["declare_subscriber"], subscribed),
@@ -94,13 +85,12 @@ def _robot_rules(k: Keys, r: str) -> list[dict[str, Any]]:
 
 def _edge_rules(k: Keys, e: str) -> list[dict[str, Any]]:
     inputs = [k.all_scans(), k.all_frames()]
-    ctrl = [k.all_maps(), k.all_pings(e), k.all_attaches(e)]
+    ctrl = [k.all_maps(e), k.all_pings(e), k.all_attaches(e)]
     return [
         _rule(f"edge_{e}_sub", "ingress", ["declare_subscriber"], inputs),
         _rule(f"edge_{e}_rx", "egress", ["put"], inputs),
         _rule(f"edge_{e}_put", "ingress", ["put"],
-              [_answers(k.scan_ack, e), _answers(k.detections, e), _answers(k.checkpoint, e),
-               k.edge_status(e)]),
+              [*(k.answer(kind, "*", e) for kind in k.ANSWERS), k.edge_status(e)]),
         _rule(f"edge_{e}_queryable", "ingress", ["declare_queryable"], ctrl),
         _rule(f"edge_{e}_queries", "egress", ["query"], ctrl),
         _rule(f"edge_{e}_reply", "ingress", ["reply"], ctrl),
@@ -120,8 +110,8 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
     return [
         _rule(f"monitor_{m}_sub", "ingress", ["declare_subscriber"], [status]),
         _rule(f"monitor_{m}_rx", "egress", ["put"], [status]),
-        _rule(f"monitor_{m}_get", "ingress", ["query"], [k.all_maps()]),
-        _rule(f"monitor_{m}_replies", "egress", ["reply"], [k.all_maps()]),
+        _rule(f"monitor_{m}_get", "ingress", ["query"], [_wild(k.all_maps)]),  # each edge by name
+        _rule(f"monitor_{m}_replies", "egress", ["reply"], [_wild(k.all_maps)]),
         _rule(f"monitor_{m}_watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
               [alive]),
         _rule(f"monitor_{m}_tokens", "egress", ["liveliness_token"], [alive]),
@@ -129,10 +119,9 @@ def _monitor_rules(k: Keys, m: str) -> list[dict[str, Any]]:
 
 
 def _router_rules(k: Keys, p: str) -> list[dict[str, Any]]:
-    data = [_wild(k.scan), _wild(k.frame), *(_answers(key_of) for key_of in (k.scan_ack, k.detections,
-                                                                             k.checkpoint)),
+    data = [_wild(k.scan), _wild(k.frame), *(k.answer(kind, "*", "*") for kind in k.ANSWERS),
             f"{k.ns}/status/**"]
-    ctrl = [k.all_maps(), _wild(k.all_pings), _wild(k.all_attaches)]
+    ctrl = [_wild(k.all_maps), _wild(k.all_pings), _wild(k.all_attaches)]
     alive = [k.any_robot_alive(), k.any_edge_alive()]
     rules = []
     for flow in ("ingress", "egress"):

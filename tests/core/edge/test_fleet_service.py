@@ -123,7 +123,8 @@ def test_attach_continues_the_checkpoint_and_checkpoints_come_back(free_port: in
         assert cps.items[0].stamp == 121.0
         np.testing.assert_allclose(cps.items[-1].pose, ok[-1].pose)
         # The map's trajectory holds the robot's own pose, then the edge's
-        m = wire.decode(list(s.get(KEYS.map("r1"), timeout=5))[0].ok.payload.to_bytes(), expect=wire.MapReply)
+        m = wire.decode(list(s.get(KEYS.map("r1", "e1"), timeout=5))[0].ok.payload.to_bytes(),
+                        expect=wire.MapReply)
         assert m.seqs.tolist() == list(range(20, 31)) and m.scans == 10
         np.testing.assert_allclose(m.poses[0], local)
 

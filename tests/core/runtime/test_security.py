@@ -55,9 +55,9 @@ def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() ->
     # may put, does not come over a link from a router with an older ACL either
     for key in ("zoffload/data/robot1/scan_ack", "zoffload/data/robot1/checkpoint"):
         assert not allowed(acl, "robot_robot1", "egress", "put", key)
-    assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1"))
-    assert not allowed(acl, "robot_robot1", "ingress", "query", k.map("robot2"))
-    assert not allowed(acl, "robot_robot1", "ingress", "declare_queryable", k.all_maps())
+    assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1", "edge1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "query", k.map("robot2", "edge1"))
+    assert not allowed(acl, "robot_robot1", "ingress", "declare_queryable", k.all_maps("edge1"))
     # the edge answers everyone under its own id, and nothing else
     for key in (k.scan_ack("robot1", "edge1"), k.scan_ack("robot2", "edge1"), k.detections("robot2", "edge1"),
                 k.checkpoint("robot2", "edge1"), k.edge_status("edge1")):
@@ -87,6 +87,43 @@ def test_each_robot_may_publish_only_its_own_keys_and_only_edges_may_answer() ->
     assert not any("put" in r["messages"] and "ingress" in r["flows"] for r in rules_of(acl, "monitor_mon"))
     # declarations flow to every client (a Publisher would drop every put without them)
     assert all(allowed(acl, s["id"], "egress", "declare_subscriber", k.all_scans()) for s in acl["subjects"])
+
+
+def test_an_edge_answers_map_queries_only_under_its_own_id() -> None:
+    """Was: every edge declared and answered ``ctrl/*/map``, so an authorised edge answered map
+    queries for robots it does not map, in another edge's name. Now edge E declares, is sent and
+    answers only ``ctrl/*/map/E``; queriers ask each edge by name; the key before per-edge maps is
+    nobody's."""
+    k = Keys()
+    acl = access_control(k, ["robot1", "robot2"], ["edge1", "edge2"], ["mon"], routers=["rack"])
+    for e, other in (("edge1", "edge2"), ("edge2", "edge1")):
+        subject = f"edge_{e}"
+        assert allowed(acl, subject, "ingress", "declare_queryable", k.all_maps(e))
+        assert allowed(acl, subject, "egress", "query", k.map("robot1", e))
+        assert allowed(acl, subject, "ingress", "reply", k.map("robot1", e))
+        for message, flow in (("declare_queryable", "ingress"), ("query", "egress"), ("reply", "ingress")):
+            assert not allowed(acl, subject, flow, message, k.all_maps(other)), (e, message)
+            assert not allowed(acl, subject, flow, message, k.map("robot1", other)), (e, message)
+            assert not allowed(acl, subject, flow, message, k.map_before("robot1")), (e, message)
+        assert not allowed(acl, subject, "ingress", "declare_queryable", "zoffload/ctrl/*/map/*")
+        # a wildcard query is not within the edge's rule: a querier names the edge (runtime/maps.py)
+        assert not allowed(acl, subject, "egress", "query", "zoffload/ctrl/robot1/map/*")
+    # the monitor (the lab's runner, the viewer) asks any edge by name for any robot's map
+    for key in (k.map("robot1", "edge1"), k.map("robot2", "edge2")):
+        assert allowed(acl, "monitor_mon", "ingress", "query", key)
+        assert allowed(acl, "monitor_mon", "egress", "reply", key)
+    assert not allowed(acl, "monitor_mon", "ingress", "declare_queryable", k.all_maps("edge1"))
+    # a robot asks for its own map only, of any edge by name
+    assert allowed(acl, "robot_robot1", "ingress", "query", k.map("robot1", "edge2"))
+    assert allowed(acl, "robot_robot1", "egress", "reply", k.map("robot1", "edge2"))
+    assert not allowed(acl, "robot_robot1", "egress", "reply", k.map("robot2", "edge2"))
+    # nobody asks or answers on the key before per-edge maps
+    for subject in ("robot_robot1", "monitor_mon", "router_rack"):
+        for flow, message in (("ingress", "query"), ("egress", "reply"), ("ingress", "reply")):
+            assert not allowed(acl, subject, flow, message, k.map_before("robot1")), (subject, message)
+    for flow in ("ingress", "egress"):  # a linked router carries every edge's map queries and replies
+        for message in ("query", "reply"):
+            assert allowed(acl, "router_rack", flow, message, k.map("robot1", "edge2"))
 
 
 def test_identities_must_be_ids_and_distinct() -> None:

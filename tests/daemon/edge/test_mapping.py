@@ -141,11 +141,16 @@ def test_map_queries_errors_and_export_on_stop(free_port: int, tmp_path: Path) -
         assert [a.status for a in acks.items] == ["ok", "error", "ok"]
         assert "no points" in acks.items[1].detail and service.counters["errors"] == 1
 
-        replies = list(s.get(KEYS.map("r1"), timeout=5))
+        replies = list(s.get(KEYS.map("r1", "edge1"), timeout=5))
+        assert str(replies[0].ok.key_expr) == KEYS.map("r1", "edge1")
         m = wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.MapReply)
         assert isinstance(m, wire.MapReply)
         assert m.robot == "r1" and m.scans == 2 and list(m.seqs) == [0, 2] and len(m.points) == 200
-        unknown = list(s.get(KEYS.map("nobody"), timeout=5))
+        assert m.edge == "edge1"  # the reply names its edge
+        # only its own key: not another edge's, nor the key before per-edge maps
+        for key in (KEYS.map("r1", "edge2"), KEYS.map_before("r1")):
+            assert list(s.get(key, timeout=2)) == [], key
+        unknown = list(s.get(KEYS.map("nobody", "edge1"), timeout=5))
         assert unknown[0].err is not None and b"no map" in unknown[0].err.payload.to_bytes()
     # Stopped: the map, trajectory and counters are on disk
     assert (tmp_path / "r1_map.ply").stat().st_size > 1000
@@ -163,6 +168,6 @@ def test_without_a_mapper_it_only_receives_and_acks(free_port: int, tmp_path: Pa
         wait_for(lambda: len(acks.items) == 1, what="the ack")
         assert acks.items[0].status == "ok" and acks.items[0].detail == "mapping disabled"
         assert service.robots["r1"].counters["received_only"] == 1
-        err = list(s.get(KEYS.map("r1"), timeout=5))[0].err
+        err = list(s.get(KEYS.map("r1", "edge1"), timeout=5))[0].err
         assert err is not None and b"no map" in err.payload.to_bytes()
     assert list(tmp_path.iterdir()) == []

@@ -53,11 +53,11 @@ def test_acks_poses_map_query_and_export(free_port: int, tmp_path: Path) -> None
         np.testing.assert_allclose(ok[0].pose, np.eye(4), atol=1e-9)
         assert ok[-1].pose[0, 3] > 0.2  # the robot moved forward along x
 
-        replies = list(s.get(KEYS.map("r1"), timeout=10))
+        replies = list(s.get(KEYS.map("r1", "edge1"), timeout=10))
         m = wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.MapReply)
         assert isinstance(m, wire.MapReply)
         assert m.scans == 20 and list(m.seqs) == list(range(20)) and len(m.points) == ok[-1].map_points
-        unknown = list(s.get(KEYS.map("nobody"), timeout=5))
+        unknown = list(s.get(KEYS.map("nobody", "edge1"), timeout=5))
         assert unknown[0].err is not None and b"no map" in unknown[0].err.payload.to_bytes()
         assert mapping(edge).counters["registered"] == 20
     assert (tmp_path / "r1_map.ply").stat().st_size > 1000

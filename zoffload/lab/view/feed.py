@@ -4,7 +4,9 @@ Subscribed (``<ns>`` the namespace): ``status/<robot>`` and ``status/edge/<edge>
 ``data/<robot>/scan_ack/<edge>``, ``data/<robot>/scan`` (unless ``scans`` is off: every scan crosses to the
 viewer), ``view/<robot>/preview`` (the robot publishes previews only while a viewer listens),
 ``data/<robot>/detections/<edge>`` and, when ``frames`` is on, ``data/<robot>/frame``. The map comes from
-the ``ctrl/<robot>/map`` query, every ``map_period`` and only when the map grew.
+the ``ctrl/<robot>/map/<edge>`` query, every ``map_period`` and only when the map grew, asked of the
+edge whose ack came last (the edge that maps the robot), else of every live edge (runtime/maps.py: a
+reply naming another edge than asked is a counted drop).
 
 Zenoh callbacks only keep bytes: the newest message per robot and kind (scans, previews, frames,
 statuses) or a bounded queue (acks, detections, which the trajectory and the pairing need in
@@ -29,6 +31,7 @@ from zoffload.lab.view.recording import Recording
 from zoffload.protocol import wire
 from zoffload.protocol.keys import ID, Keys
 from zoffload.runtime.drops import Drops
+from zoffload.runtime.maps import fetch_map
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.view")
@@ -55,6 +58,7 @@ class Feed:
         self._queued: deque[tuple[str, str, bytes]] = deque(maxlen=QUEUED_MAX)
         self._maps: dict[str, wire.MapReply] = {}
         self._map_points: dict[str, tuple[float, float]] = {}  # robot -> (seen, fetched)
+        self._mapped_by: dict[str, str] = {}  # robot -> the edge of its latest ack: whom to ask for its map
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._subs: list[Any] = []
@@ -67,9 +71,9 @@ class Feed:
         routes: list[tuple[str, Callable[[zenoh.Sample], None]]] = [
             (k.all_robot_status(), self._on_status),
             (k.all_edge_status(), self._on_edge_status),
-            (k.all_scan_acks(), self._queue("ack")),
+            (k.answers("scan_ack"), self._queue("ack")),
             (k.all_previews(), self._keep("preview")),
-            (k.all_detections(), self._queue("detections")),
+            (k.answers("detections"), self._queue("detections")),
         ]
         if self.scans:
             routes.append((k.all_scans(), self._keep("scan")))
@@ -107,11 +111,15 @@ class Feed:
 
     def _queue(self, kind: str) -> Callable[[zenoh.Sample], None]:
         def on(sample: zenoh.Sample) -> None:
-            robot = self._admit(self.keys.robot_of(str(sample.key_expr)))
+            key = str(sample.key_expr)
+            robot = self._admit(self.keys.robot_of(key))
             if robot is not None:
                 data = sample.payload.to_bytes()
+                edge = self.keys.answering_edge(key) if kind == "ack" else None
                 with self._lock:
                     self._queued.append((kind, robot, data))
+                    if edge:
+                        self._mapped_by[robot] = edge
         return on
 
     def _on_status(self, sample: zenoh.Sample) -> None:
@@ -211,28 +219,20 @@ class Feed:
         """Query ``robot``'s map now; True when one came back (it is logged on the next drain)."""
         with self._lock:
             asked_at, _ = self._map_points.get(robot, (0.0, 0.0))
+            edge = self._mapped_by.get(robot)
         try:
-            replies = list(self.session.get(self.keys.map(robot), timeout=self.map_timeout))
+            msg = fetch_map(self.session, self.keys, robot, [edge] if edge else [], self.drops,
+                            self.map_timeout)
         except Exception as exc:  # the session is closing, or the query could not be sent
             log.debug("map query for %s failed: %s", robot, exc)
             return False
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            try:
-                msg = wire.decode(reply.ok.payload.to_bytes(), expect=wire.MapReply)
-            except wire.WireError as exc:
-                self.drops.drop("malformed", f"map of {robot}: {exc}")
-                continue
-            if msg.robot != robot:
-                self.drops.drop("robot_mismatch", f"map reply for {robot} names {msg.robot}")
-                continue
-            with self._lock:
-                self._maps[robot] = msg
-                seen, _ = self._map_points.get(robot, (0.0, 0.0))
-                self._map_points[robot] = (seen, asked_at)
-            return True
-        return False
+        if msg is None:
+            return False
+        with self._lock:
+            self._maps[robot] = msg
+            seen, _ = self._map_points.get(robot, (0.0, 0.0))
+            self._map_points[robot] = (seen, asked_at)
+        return True
 
     # Shutdown
     def close(self) -> None:

@@ -38,10 +38,10 @@ def scan(robot: str, seq: int, points: np.ndarray) -> wire.Scan:
                      max_range=100.0, n_raw=len(points), points=points.astype(np.float32))
 
 
-def map_reply(robot: str, n: int, seqs: list[int]) -> wire.MapReply:
+def map_reply(robot: str, n: int, seqs: list[int], edge: str = "e1") -> wire.MapReply:
     pts = np.random.default_rng(0).uniform(-10, 10, (n, 3)).astype(np.float32)
     return wire.MapReply(robot=robot, scans=len(seqs), points=pts, seqs=np.array(seqs, np.int64),
-                         poses=np.stack([pose(float(s)) for s in seqs]))
+                         poses=np.stack([pose(float(s)) for s in seqs]), edge=edge)
 
 
 def jpeg(width: int = 64, height: int = 48) -> np.ndarray:

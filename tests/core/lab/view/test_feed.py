@@ -49,7 +49,8 @@ def test_published_traffic_reaches_the_recording_and_the_map_is_polled(sessions:
         queries.append(str(query.key_expr))
         query.reply(query.key_expr, wire.encode(map_reply(R, 200, [1, 2])))
 
-    queryable = side.declare_queryable(KEYS.map(R), answer)
+    # asked of the edge whose acks came (e1), by name; it holds no token, so no other edge is known
+    queryable = side.declare_queryable(KEYS.all_maps("e1"), answer)
     stream = rr.RecordingStream("zoffload-test", recording_id=uuid.uuid4())
     memory = stream.memory_recording()
     feed = Feed(viewer, KEYS, Recording(stream, scan_period=0.0), max_robots=1, map_period=0.2, tick=0.05)
@@ -74,6 +75,7 @@ def test_published_traffic_reaches_the_recording_and_the_map_is_polled(sessions:
         queryable.undeclare()
     stream.flush()
     got = entities(memory.drain_as_bytes(), tmp_path)
+    assert set(queries) == {KEYS.map(R, "e1")}
     for name in ("map", "trajectory", "pose", "scan", "camera", "camera/persons", "link/rtt_ms", "link/T_s"):
         assert f"/robots/{R}/{name}" in got, name
     assert "/edges/e1/q" in got and not any(p.startswith("/robots/r2") for p in got)
@@ -89,7 +91,9 @@ def test_the_map_is_queried_only_when_it_grew(sessions: tuple[Any, Any]) -> None
         queries.append(str(query.key_expr))
         query.reply(query.key_expr, wire.encode(map_reply(R, 10, [1])))
 
-    queryable = side.declare_queryable(KEYS.map(R), answer)
+    # no ack seen: every live edge is asked by name
+    queryable = side.declare_queryable(KEYS.all_maps("e1"), answer)
+    token = side.liveliness().declare_token(KEYS.edge_alive("e1"))
     stream = rr.RecordingStream("zoffload-test", recording_id=uuid.uuid4())
     memory = stream.memory_recording()
     feed = Feed(viewer, KEYS, Recording(stream), map_period=3600, tick=3600)  # driven by hand below
@@ -107,6 +111,27 @@ def test_the_map_is_queried_only_when_it_grew(sessions: tuple[Any, Any]) -> None
     finally:
         feed.close()
         queryable.undeclare()
+        token.undeclare()
+        memory.drain_as_bytes()
+
+
+def test_a_map_in_another_edges_name_is_dropped(sessions: tuple[Any, Any]) -> None:
+    """Edge e2 answers on its own key (all the ACL lets it) with a map naming e1: counted, not logged."""
+    side, viewer = sessions
+    queryable = side.declare_queryable(
+        KEYS.all_maps("e2"), lambda q: q.reply(q.key_expr, wire.encode(map_reply(R, 10, [1], edge="e1"))))
+    token = side.liveliness().declare_token(KEYS.edge_alive("e2"))
+    stream = rr.RecordingStream("zoffload-test", recording_id=uuid.uuid4())
+    memory = stream.memory_recording()
+    feed = Feed(viewer, KEYS, Recording(stream), map_period=3600, tick=3600, map_timeout=3)
+    try:
+        wait_for(lambda: feed.fetch_map(R) or feed.drops.total() > 0, 10, "the reply")
+        assert not feed.fetch_map(R)
+        assert feed.drops.snapshot() == {"edge_key_map": 2} and feed.drain() == 0
+    finally:
+        feed.close()
+        queryable.undeclare()
+        token.undeclare()
         memory.drain_as_bytes()
 
 

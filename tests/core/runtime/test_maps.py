@@ -1,0 +1,130 @@
+"""runtime/maps.py on loopback sessions: a querier asks each edge for a robot's map by name (the
+one it knows maps it, else every live edge, then the key before per-edge maps), and takes a reply
+only from the edge it asked."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tests.helpers import KEYS, client, listen_on, wait_for
+from zoffload.protocol import wire
+from zoffload.runtime.maps import fetch_map, live_edges
+from zoffload.runtime.session import open_session
+
+
+class _Drops:
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+
+    def drop(self, reason: str, detail: str) -> None:
+        self.counts[reason] += 1
+
+
+def reply(robot: str, edge: str, scans: int) -> bytes:
+    return wire.encode(wire.MapReply(robot=robot, scans=scans, points=np.zeros((2, 3), np.float32),
+                                     seqs=np.arange(scans), poses=np.repeat(np.eye(4)[None], scans, 0),
+                                     edge=edge))
+
+
+class Fleet:
+    """Edges on one session: each holds a token and answers its own map key with ``maps[edge]``
+    (an error reply for robots it does not map), so each query asked is recorded."""
+
+    def __init__(self, session: Any, maps: dict[str, dict[str, bytes]]) -> None:
+        self.asked: list[str] = []
+        self.held: list[Any] = []
+        for edge, robots in maps.items():
+            self.held.append(session.liveliness().declare_token(KEYS.edge_alive(edge)))
+            self.held.append(session.declare_queryable(KEYS.all_maps(edge), self._answer(edge, robots)))
+
+    def _answer(self, edge: str, robots: dict[str, bytes]) -> Any:
+        def on(query: Any) -> None:
+            key = str(query.key_expr)
+            self.asked.append(key)
+            robot = KEYS.robot_of(key)
+            if robot in robots:
+                query.reply(KEYS.map(robot, edge), robots[robot])
+            else:
+                query.reply_err(b"no map")
+        return on
+
+    def wait_routed(self, querier: Any, edges: list[str]) -> None:
+        """Until the querier reaches each edge's queryable (declarations take a moment to arrive)."""
+        for edge in edges:
+            wait_for(lambda: any(r.err is not None for r in querier.get(KEYS.map("probe", edge), timeout=2)),  # noqa: B023
+                     10, f"edge {edge}'s queryable")
+        self.asked.clear()
+
+    def close(self) -> None:
+        for h in self.held:
+            h.undeclare()
+
+
+@pytest.fixture
+def sessions(free_port: int) -> Iterator[tuple[Any, Any]]:
+    """(the edges' side, the querier's side) on one loopback link."""
+    side = open_session(listen_on(free_port))
+    try:
+        with client(free_port) as querier:
+            yield side, querier
+    finally:
+        side.close()
+
+
+def test_the_edge_that_maps_the_robot_is_asked_by_name_and_no_other(sessions: tuple[Any, Any]) -> None:
+    side, querier = sessions
+    fleet = Fleet(side, {"e1": {"r1": reply("r1", "e1", 3)}, "e2": {}})
+    drops = _Drops()
+    try:
+        wait_for(lambda: live_edges(querier, KEYS, drops) == ["e1", "e2"], 10, "the edges' tokens")
+        fleet.wait_routed(querier, ["e1", "e2"])
+        got = fetch_map(querier, KEYS, "r1", ["e1"], drops, timeout=5)
+        assert got is not None and got.edge == "e1" and got.scans == 3
+        assert fleet.asked == [KEYS.map("r1", "e1")] and not drops.counts
+    finally:
+        fleet.close()
+
+
+def test_without_a_hint_every_live_edge_is_asked_by_name_and_a_reply_in_another_edges_name_is_dropped(
+        sessions: tuple[Any, Any]) -> None:
+    """Edge a0 answers robot r1's query on its own key with a map naming e1 (as a compromised edge
+    would, when the ACL keeps it to its own key): dropped and counted; e1's own map is taken. A hint
+    of an edge without the map falls back to the others."""
+    side, querier = sessions
+    fleet = Fleet(side, {"a0": {"r1": reply("r1", "e1", 99)}, "e1": {"r1": reply("r1", "e1", 3)}, "e2": {}})
+    drops = _Drops()
+    try:
+        wait_for(lambda: live_edges(querier, KEYS, drops) == ["a0", "e1", "e2"], 10, "the edges' tokens")
+        fleet.wait_routed(querier, ["a0", "e1", "e2"])
+        got = fetch_map(querier, KEYS, "r1", ["e2"], drops, timeout=5)
+        assert got is not None and got.edge == "e1" and got.scans == 3
+        assert drops.counts == {"edge_key_map": 1}
+        # every query named one edge, each edge was asked on its own key only
+        wait_for(lambda: len(fleet.asked) == 3, 5, "the queries' arrival")
+        assert sorted(fleet.asked) == sorted(KEYS.map("r1", e) for e in ("a0", "e1", "e2"))
+        assert fetch_map(querier, KEYS, "nobody", [], drops, timeout=5) is None
+    finally:
+        fleet.close()
+
+
+def test_an_older_edge_answers_on_the_key_before_per_edge_maps(sessions: tuple[Any, Any]) -> None:
+    side, querier = sessions
+    fleet = Fleet(side, {"e1": {}})
+    older = side.declare_queryable(KEYS.map_before("r1"),
+                                   lambda q: q.reply(KEYS.map_before("r1"), reply("r1", "", 4)))
+    drops = _Drops()
+    try:
+        wait_for(lambda: live_edges(querier, KEYS, drops) == ["e1"], 10, "the edge's token")
+        fleet.wait_routed(querier, ["e1"])
+        wait_for(lambda: any(r.ok is not None for r in querier.get(KEYS.map_before("r1"), timeout=2)), 10,
+                 "the older edge's queryable")
+        got = fetch_map(querier, KEYS, "r1", [], drops, timeout=5)
+        assert got is not None and got.edge == "" and got.scans == 4 and not drops.counts
+    finally:
+        older.undeclare()
+        fleet.close()

@@ -1,0 +1,60 @@
+"""Map queries: a robot's registered map and trajectory (``wire.MapReply``), asked of one edge by name.
+
+Under the router's ACL an edge declares and answers only its own map key
+(``<ns>/ctrl/<robot>/map/<edge>``), and the ACL checks a query's key against the rule's: a wildcard
+query (``.../map/*``) would reach no edge, so a querier asks each edge by its id. Which edges: those
+the caller knows map the robot (the edge of its acks, the querier's own edge), else every live edge
+(``alive/edge/*``) and the key before per-edge maps (an older edge, ``keys.map_before``). A reply
+whose key or payload names another edge than asked is dropped and counted (``edge_key_map``,
+``protocol/intake.map_from``), as a malformed one or another robot's.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import zenoh
+
+from zoffload.protocol import wire
+from zoffload.protocol.intake import DropCounter, edge_token, map_from
+from zoffload.protocol.keys import Keys
+from zoffload.runtime.drops import Drops
+
+log = logging.getLogger("zoffload.maps")
+
+
+def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: float = 5.0) -> list[str]:
+    """The edges whose liveliness token is up, by id."""
+    edges = {edge for reply in session.liveliness().get(keys.any_edge_alive(), timeout=timeout)
+             if reply.ok is not None and (edge := edge_token(reply.ok, keys, drops)) is not None}
+    return sorted(edges)
+
+
+def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str], drops: DropCounter,
+            timeout: float = 10.0, before: bool = False) -> wire.MapReply | None:
+    """Ask each of ``edges`` for ``robot``'s map, all at once, and with ``before`` the key before
+    per-edge maps too; the first valid reply in that order, None when none came."""
+    asked = [(edge, session.get(keys.map(robot, edge), timeout=timeout)) for edge in edges]
+    if before:
+        asked.append(("", session.get(keys.map_before(robot), timeout=timeout)))
+    for edge, replies in asked:
+        for reply in replies:
+            if reply.ok is None:
+                continue  # that edge has no map of the robot, or is building another's
+            msg = map_from(reply.ok, keys, robot, edge, drops)
+            if msg is not None:
+                return msg
+    return None
+
+
+def fetch_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str] = (),
+              drops: DropCounter | None = None, timeout: float = 10.0) -> wire.MapReply | None:
+    """``robot``'s map from ``edges`` (those the caller knows map it, in order), else from every
+    other live edge, or an older edge on the key before per-edge maps."""
+    drops = drops if drops is not None else Drops(log)
+    msg = ask_map(session, keys, robot, edges, drops, timeout) if edges else None
+    if msg is None:
+        others = [e for e in live_edges(session, keys, drops, timeout) if e not in edges]
+        msg = ask_map(session, keys, robot, others, drops, timeout, before=True)
+    return msg
