@@ -65,4 +65,15 @@ def client(port: int) -> Iterator[Any]:
         session.close()
 
 
+@contextmanager
+def served(port: int) -> Iterator[tuple[Any, Any]]:
+    """(a session listening on ``port``, a client of it): two sides of one loopback link."""
+    side = open_session(listen_on(port))
+    try:
+        with client(port) as other:
+            yield side, other
+    finally:
+        side.close()
+
+
 KEYS = Keys()

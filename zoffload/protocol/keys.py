@@ -133,13 +133,19 @@ class Keys:
             return ""
         return parts[4] if len(parts) == 5 and ID.match(parts[4]) else None
 
-    # Map: a querier asks edge E for robot N's map by name (a wildcard query would not reach an edge
-    # under the ACL, whose rule names its id); E's queryable answers only its own key
+    # Queries to one edge by name (map, ping, attach): edge E's queryable holds ``ctrl/*/<kind>/E``
+    # and answers only its own key (under the ACL, whose rule names its id, a wildcard query would
+    # not reach it)
+    def _ask(self, kind: str, robot: str, edge: str) -> str:
+        """Robot ``robot``'s query of ``kind`` to ``edge``; ``robot`` may be ``*`` (E's queryable)."""
+        return f"{self.ns}/ctrl/{_id_or_any(robot, 'robot id')}/{kind}/{check_id(edge, 'edge id')}"
+
+    # Map: a querier asks edge E for robot N's map
     def map(self, robot: str, edge: str) -> str:
-        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/map/{check_id(edge, 'edge id')}"
+        return self._ask("map", check_id(robot, "robot id"), edge)
 
     def all_maps(self, edge: str) -> str:
-        return f"{self.ns}/ctrl/*/map/{check_id(edge, 'edge id')}"
+        return self._ask("map", "*", edge)
 
     def map_before(self, robot: str) -> str:
         """The map key before per-edge map keys, which an older edge still answers (any edge's)."""
@@ -148,17 +154,17 @@ class Keys:
     # Ping: robot N asks edge E for a pong (the round trip to the edge its frames go to); E's
     # queryable answers only its own key, as it answers only its own attaches
     def ping(self, robot: str, edge: str) -> str:
-        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/ping/{check_id(edge, 'edge id')}"
+        return self._ask("ping", check_id(robot, "robot id"), edge)
 
     def all_pings(self, edge: str) -> str:
-        return f"{self.ns}/ctrl/*/ping/{check_id(edge, 'edge id')}"
+        return self._ask("ping", "*", edge)
 
     # Attach: robot N asks edge E to map it (queryable held by E for every robot)
     def attach(self, robot: str, edge: str) -> str:
-        return f"{self.ns}/ctrl/{check_id(robot, 'robot id')}/attach/{check_id(edge, 'edge id')}"
+        return self._ask("attach", check_id(robot, "robot id"), edge)
 
     def all_attaches(self, edge: str) -> str:
-        return f"{self.ns}/ctrl/*/attach/{check_id(edge, 'edge id')}"
+        return self._ask("attach", "*", edge)
 
     # Viewers
     def preview(self, robot: str) -> str:

@@ -56,13 +56,12 @@ class ScanLedger:
     route_since: float = -math.inf  # robot clock of the first scan under it
     route_rtt_min: float = math.inf  # the quickest round trip of a scan acked under it [s]
     route_acks: int = 0  # scans acked under it
-    # network time of the newest ack of the current route, late ones too: a queue deeper than the ack
-    # timeout shows only in late acks (``recent`` holds acked scans), and the scans the timeout
-    # expired while they queued no longer count in flight. Only scans the edge registered ("ok")
-    # with both of its times known: a busy edge's "dropped" answer carries its queue, not the link's
-    newest_net: float = math.nan
-    route_nets: deque[tuple[float, float]] = field(  # (robot clock, network time) of those, this route
-        default_factory=lambda: deque(maxlen=200))
+    # (robot clock, network time) of the current route's answers, late ones too: a queue deeper than
+    # the ack timeout shows only in late acks (``recent`` holds acked scans), and the scans the
+    # timeout expired while they queued no longer count in flight. Only scans the edge registered
+    # ("ok") with both of its times known: a busy edge's "dropped" answer carries its queue, not the
+    # link's. ``newest_net`` and ``floor_net`` read it
+    route_nets: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=200))
     _route_answered: int = -1  # the newest scan of the current route the edge answered (any status)
     _route_lost: deque[int] = field(default_factory=lambda: deque(maxlen=100))  # expired on the route
     # the route's round trip as TCP estimates it (RFC 6298: smoothed, and its mean deviation), from
@@ -135,13 +134,12 @@ class ScanLedger:
         self.last_ack_at = recv_stamp
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
-        if self.route is None or _route(rec) == self.route:
+        if self._here(rec):
             self._route_answered = max(self._route_answered, ack.seq)
             if rtt >= 0:
                 self._round_trip(rtt)
             if (ack.status == "ok" and rtt >= 0 and math.isfinite(ack.queue_time)
                     and math.isfinite(ack.proc_time)):
-                self.newest_net = rtt - edge_time
                 self.route_nets.append((recv_stamp, rtt - edge_time))
         rec.update(rtt=rtt, network_time=rtt - edge_time, interarrival=ack.interarrival,
                    queue_time=ack.queue_time, proc_time=ack.proc_time, map_points=ack.map_points,
@@ -169,7 +167,7 @@ class ScanLedger:
                 if math.isfinite(ack.queue_time) and math.isfinite(ack.proc_time):
                     self.edge_times.append(edge_time)
                 self._acked_bytes.append((recv_stamp, nbytes))
-                if (self.route is None or route == self.route) and rtt >= 0:
+                if (self.route is None or route == self.route) and rtt >= 0:  # (``rec`` names ack.edge now)
                     self.route_acks += 1
                     self.route_rtt_min = min(self.route_rtt_min, rtt)
                 if self.first_acked_at is None:
@@ -204,7 +202,7 @@ class ScanLedger:
             rec = self.records[seq]
             rec["status"] = "lost"
             route = _route(rec)
-            if self.route is None or route == self.route:
+            if self._here(rec):
                 self._route_lost.append(seq)
             if newest is not None and newest[:2] == route and newest[2] > seq:
                 rec["overtaken"] = True
@@ -226,7 +224,7 @@ class ScanLedger:
         """Scans go to ``route`` (edge, epoch) from now on (a move: a new one)."""
         if route != self.route:
             self.route, self.route_since = route, now
-            self.route_rtt_min, self.route_acks, self.newest_net = math.inf, 0, math.nan
+            self.route_rtt_min, self.route_acks = math.inf, 0
             self.route_nets.clear()
             self._route_answered = -1
             self._route_lost.clear()
@@ -251,6 +249,15 @@ class ScanLedger:
             return base
         return min(most, max(base, self.srtt + 4 * self.rttvar))
 
+    def _here(self, rec: dict[str, Any]) -> bool:
+        """Whether a scan's record was sent under the current route (any, before the first)."""
+        return self.route is None or _route(rec) == self.route
+
+    @property
+    def newest_net(self) -> float:
+        """The network time of the current route's newest answer in ``route_nets``; NaN: none."""
+        return self.route_nets[-1][1] if self.route_nets else math.nan
+
     @property
     def floor_net(self) -> float:
         """The path's floor: the quickest network time of the scans the edge registered on the
@@ -273,8 +280,7 @@ class ScanLedger:
         a later one is answered (answers come in order)."""
         newest, recs = self._route_answered, self.records
         lost = sum(1 for s in self._route_lost if s > newest and recs.get(s, {}).get("status") == "lost")
-        return lost + sum(1 for s in self.pending
-                          if s > newest and (self.route is None or _route(recs.get(s, {})) == self.route))
+        return lost + sum(1 for s in self.pending if s > newest and self._here(recs.get(s, {})))
 
     @property
     def in_flight_here(self) -> int:
@@ -286,7 +292,7 @@ class ScanLedger:
         if self.route is None:
             return len(self.pending)
         recs = self.records
-        return sum(1 for s in self.pending if _route(recs.get(s, {})) == self.route)
+        return sum(1 for s in self.pending if self._here(recs.get(s, {})))
 
     def since_answer(self, now: float) -> float:
         """Seconds since the newest ack, or since the current route began if that is later (a new

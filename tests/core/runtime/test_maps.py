@@ -11,10 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.helpers import KEYS, client, listen_on, wait_for
+from tests.helpers import KEYS, served, wait_for
 from zoffload.protocol import wire
 from zoffload.runtime.maps import fetch_map, live_edges
-from zoffload.runtime.session import open_session
 
 
 class _Drops:
@@ -68,12 +67,8 @@ class Fleet:
 @pytest.fixture
 def sessions(free_port: int) -> Iterator[tuple[Any, Any]]:
     """(the edges' side, the querier's side) on one loopback link."""
-    side = open_session(listen_on(free_port))
-    try:
-        with client(free_port) as querier:
-            yield side, querier
-    finally:
-        side.close()
+    with served(free_port) as pair:
+        yield pair
 
 
 def test_the_edge_that_maps_the_robot_is_asked_by_name_and_no_other(sessions: tuple[Any, Any]) -> None:

@@ -12,10 +12,9 @@ import numpy as np
 import pytest
 
 from tests.core.lab.view.messages import R, ack, entities, map_reply, pose, preview, scan, status
-from tests.helpers import client, listen_on, wait_for
+from tests.helpers import served, wait_for
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
-from zoffload.runtime.session import open_session
 
 rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install 'zoffload[view]')")
 
@@ -28,12 +27,8 @@ KEYS = Keys()
 @pytest.fixture
 def sessions(free_port: int) -> Iterator[tuple[Any, Any]]:
     """(the robot/edge side, the viewer's side) on one loopback link."""
-    side = open_session(listen_on(free_port))
-    try:
-        with client(free_port) as viewer:
-            yield side, viewer
-    finally:
-        side.close()
+    with served(free_port) as pair:
+        yield pair
 
 
 def put(session: Any, key: str, msg: wire.Message | bytes) -> None:
