@@ -76,7 +76,7 @@ class StreamOptions:
     quant_fraction: float = 0.1
     zstd_level: int = 1  # q16d's compression level
     ack_timeout: float = 1.0
-    ack_timeout_max: float | None = None  # set: the timeout follows the route's round trip up to it
+    ack_timeout_max: float | None = 4.0  # the timeout follows the route's round trip up to it; None: fixed
     max_in_flight: int = 3  # unanswered scans before the next is held back; 0 = no limit
     window_edge_time: bool = True  # ... plus the scans the edge holds (ScanLedger.window)
     window_path: bool = True  # ... and at least the scans the path's round trip holds
@@ -385,6 +385,7 @@ class ScanStreamer:
                 newest_net=led.newest_net,
                 floor_net=led.floor_net,
                 queued=led.queued_here,
+                overdue=led.overdue(now),
                 raw_bytes_per_point=6.0 if self.opts.coding == "q16d" else math.nan)
 
     # Main loop
@@ -518,10 +519,11 @@ class ScanStreamer:
         # a replay more than a period behind restarts its clock (no burst of overdue scans)
         out["sensor_resynced"] = self._sensor.resynced if self._sensor is not None else 0
         # the window of unanswered scans: its base, the widest it grew (the edge's queue, the
-        # path's round trip) and the quickest round trip of the current route
-        rtt_min = self.ledger.route_rtt_min
+        # path's round trip), the quickest round trip of the current route and the path's
+        rtt_min, path_rtt = self.ledger.route_rtt_min, self.ledger.path_rtt
         out["window"] = {"base": self.opts.max_in_flight, "max": self._window_max,
-                         "route_rtt_min_s": rtt_min if math.isfinite(rtt_min) else None}
+                         "route_rtt_min_s": rtt_min if math.isfinite(rtt_min) else None,
+                         "path_rtt_s": path_rtt if math.isfinite(path_rtt) else None}
         out["cpu"] = cpu_summary(totals, self._cpu, balance["produced"])
         if self.fleet_state is not None:
             out["fleet"] = self._fleet_metrics(totals, balance)

@@ -489,8 +489,8 @@ class RobotSettings(_Strict):
     )
     ack_timeout: float = Field(default=1.0, gt=0, description="seconds before an unanswered scan is lost")
     ack_timeout_max: float | None = Field(
-        default=None, gt=0,
-        description="if set: the ack timeout follows the round trip (TCP's) from ack_timeout up to this",
+        default=4.0, gt=0,
+        description="the ack timeout follows the round trip (TCP's) from ack_timeout up to this; null: fixed",
     )
     # Like a TCP window, the limit keeps the link carrying whole scans: the excess is dropped at
     # the source, newest kept.
@@ -504,7 +504,8 @@ class RobotSettings(_Strict):
         default=True, description="widen the window of unanswered scans by the edge's time per scan"
     )
     # A long path (250 ms each way) holds 6-7 scans at 10 Hz with no queue on it: the window is
-    # at least the route's quickest round trip in periods, rounded up, plus one (at most 4 x base)
+    # at least the path's round trip (the route's quickest, or the floor of the last 10 s where that
+    # is higher) in periods, rounded up, plus one (at most 8 x base)
     window_path: bool = Field(
         default=True, description="widen the window of unanswered scans to the path's quickest round trip"
     )

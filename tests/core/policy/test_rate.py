@@ -256,6 +256,13 @@ def test_a_stall_skips_scans_and_the_late_scan_after_it_does_not_cut() -> None:
     # nothing in flight: no stall however long ago the last ack was
     assert not p.decide(len(pts), LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=5, in_flight=0),
                         counter(pts)).skip
+    # a long path whose window held scans back: the one in flight left 0.1 s ago, it is not due
+    # for 1.7 s (the old silence clock, the last ack alone, read 0.8 s as a stall)
+    due = LinkView(0.1, 1e6, 6.0, 0.1, acks=1, since_ack=0.8, in_flight=1, overdue=0.1 - 1.8)
+    assert not p.decide(len(pts), due, counter(pts)).skip
+    assert not p.held_back(due)
+    late = replace(due, since_ack=0.6, overdue=0.05)  # an outage: no ack for 0.6 s, the oldest is due
+    assert p.decide(len(pts), late, counter(pts)).cause == "stall" and p.held_back(late) is not None
     p._stalled = True
     p.update_budget(LinkView(2.5, 1e5, 6.0, 0.1, acks=2))
     assert p.budget == pytest.approx(80_000.0 * 1.05) and p.counts["late_stall"] == 1

@@ -190,10 +190,10 @@ def test_a_long_path_widens_the_window_to_its_round_trip_and_a_queue_on_it_does_
     # a move to another edge measures its path anew
     acked_after(led, [0.05] * 5, route=("edgeB", 2))
     assert led.route_acks == 5 and led.window(3, 0.1) == 3
-    # a path of seconds (or an edge holding its acks) gains at most 4 x the base
+    # a path of seconds (or an edge holding its acks) gains at most 8 x the base
     slow = ScanLedger()
     acked_after(slow, [3.0] * 6)
-    assert slow.window(3, 0.1) == 12 and slow.window(2, 0.1) == 8
+    assert slow.window(3, 0.1) == 24 and slow.window(2, 0.1) == 16
 
 
 def test_late_acks_of_the_old_route_do_not_measure_the_new_path() -> None:
@@ -260,6 +260,40 @@ def test_the_floor_follows_a_path_whose_delay_rose_for_good() -> None:
             assert led.floor_net == pytest.approx(0.6 - 0.021), t
         t += 0.5
     assert led.floor_net == pytest.approx(1.8 - 0.021) and led.newest_net == pytest.approx(1.8 - 0.021)
+
+
+def test_a_path_rerouted_longer_gets_its_window_and_its_silence_counts_from_its_round_trip() -> None:
+    """``path_rtt``: the quickest round trip, or the floor of the last ``FLOOR_SPAN`` seconds where
+    that stands higher. A path 1.2 s longer for good (a satellite reroute, 0.6 s to 1.8 s) kept the
+    window of 0.6 s (7 scans) and a silence was counted from the last ack, so the first scan sent
+    after the window held some back read as a stall. A queue that drains once in ``FLOOR_SPAN``
+    does not widen the window."""
+    led = ScanLedger()
+    acked_after(led, [0.6] * 20, route=("edgeA", 1))
+    assert led.path_rtt == pytest.approx(0.6) and led.window(3, 0.1) == 7
+    t = 2.0
+    while t < 2.0 + FLOOR_SPAN + 2.0:  # the path is 1.8 s now, one scan a period, every one answered
+        seq = _sent(led, t)
+        assert led.on_ack(edge_ack(seq, t, 0.001, 0.02), recv_stamp=t + 1.8) == "acked"
+        if t + 1.8 < 2.0 + FLOOR_SPAN:
+            assert led.window(3, 0.1) == 7, t
+        t += 0.1
+    assert led.path_rtt == pytest.approx(1.8 - 0.021) and led.window(3, 0.1) == 19  # 17.8 periods
+    assert led.window(3, 0.2) == 10 and led.window(2, 0.1) == 16  # (8.9 periods; at most 8 x 2)
+    # the silence clock: the oldest scan in flight past the path's round trip
+    assert led.overdue(t) == -math.inf  # nothing in flight
+    _sent(led, t + 3.0)  # the first scan after 3 s without any (held back): no ack for 1.4 s
+    assert led.since_answer(t + 3.1) == pytest.approx(1.4)
+    assert led.overdue(t + 3.1) == pytest.approx(0.1 - 1.779)
+    assert led.overdue(t + 5.3) == pytest.approx(2.3 - 1.779)  # no answer 2.3 s on: 0.52 s overdue
+    # before the route's first answer the round trip is not known: the scan's age
+    led.on_route(("edgeB", 2), now=30.0)
+    _sent(led, 30.0, route=("edgeB", 2))
+    assert led.overdue(30.4) == pytest.approx(0.4) and led.path_rtt == math.inf
+    # a queue that drains now and then: the round trips swing, the floor stays the path's
+    q = ScanLedger()
+    acked_after(q, [0.3] * 10 + [0.9, 1.2, 1.5, 1.8, 0.3] * 40, route=("edgeA", 1))  # 20 s
+    assert q.path_rtt == pytest.approx(0.3) and q.window(3, 0.1) == 4
 
 
 def test_a_busy_edges_answers_are_not_a_network_time_and_expired_scans_still_queue() -> None:
