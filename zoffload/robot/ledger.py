@@ -253,6 +253,11 @@ class ScanLedger:
         """Whether a scan's record was sent under the current route (any, before the first)."""
         return self.route is None or _route(rec) == self.route
 
+    def _pending_here(self) -> list[tuple[int, float]]:
+        """(seq, send stamp) of the unanswered scans sent under the current route."""
+        recs = self.records
+        return [(s, stamp) for s, stamp in self.pending.items() if self._here(recs.get(s, {}))]
+
     @property
     def newest_net(self) -> float:
         """The network time of the current route's newest answer in ``route_nets``; NaN: none."""
@@ -288,12 +293,11 @@ class ScanLedger:
         (sent plus ``path_rtt``, or plus nothing before the route's first ack); -inf: none in
         flight. A silence counted since the last ack alone also counted the time the window held
         scans back: the first scan sent after it read as a stall, though it had just left."""
-        recs = self.records
-        sent = [stamp for s, stamp in self.pending.items() if self._here(recs.get(s, {}))]
+        sent = self._pending_here()
         if not sent:
             return -math.inf
         rtt = self.path_rtt
-        return now - min(sent) - (rtt if math.isfinite(rtt) else 0.0)
+        return now - min(stamp for _, stamp in sent) - (rtt if math.isfinite(rtt) else 0.0)
 
     @property
     def queued_here(self) -> int:
@@ -303,7 +307,7 @@ class ScanLedger:
         a later one is answered (answers come in order)."""
         newest, recs = self._route_answered, self.records
         lost = sum(1 for s in self._route_lost if s > newest and recs.get(s, {}).get("status") == "lost")
-        return lost + sum(1 for s in self.pending if s > newest and self._here(recs.get(s, {})))
+        return lost + sum(1 for s, _ in self._pending_here() if s > newest)
 
     @property
     def in_flight_here(self) -> int:
@@ -312,10 +316,7 @@ class ScanLedger:
         filled its window and made its silence for up to ``ack_timeout`` after a move, so the
         first scans to the new edge were held back as a stall, with no pose from either side
         (3-4 scans after a kill on the fleet's emulated links)."""
-        if self.route is None:
-            return len(self.pending)
-        recs = self.records
-        return sum(1 for s in self.pending if self._here(recs.get(s, {})))
+        return len(self._pending_here())
 
     def since_answer(self, now: float) -> float:
         """Seconds since the newest ack, or since the current route began if that is later (a new
@@ -339,9 +340,9 @@ class ScanLedger:
         the quickest round trip of the route unless the floor of the last ``FLOOR_SPAN`` seconds
         stands higher: a queue must stand on the link for that long, unbroken, before it widens
         the window that feeds it (a round trip of the last 100 scans did: README, "Unseen
-        links"), and a path that grew longer for good gets its window then: at most 4 times the
-        base, a 1.8 s path (a satellite reroute) was held to 12 scans in flight, and the scans
-        the window dropped (unannounced) left the edge 7-scan gaps in turns. ``edge`` and ``path``
+        links"), and a path that grew longer for good gets its window then. (With at most 4 times
+        the base, a 1.8 s path, a satellite reroute, was held to 12 scans in flight, and the scans
+        the window dropped, unannounced, left the edge 7-scan gaps in turns.) ``edge`` and ``path``
         switch either term off."""
         if not base:
             return base
