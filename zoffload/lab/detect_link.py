@@ -27,10 +27,10 @@ Row = tuple[float, float, float, float, float, int]
 def mmwave_rows(seed: int = SEED, duration: float = DURATION) -> list[Row]:
     """(time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage) rows of the trace."""
     rng = random.Random(seed)
-    rows = []
+    rows: list[Row] = []
     t, log_rate = 0.0, math.log(200.0)
     next_block = rng.uniform(8.0, 15.0)
-    while t < duration:
+    while t < duration or rows[-1][5]:  # a blockage always ends in a row: the last row holds for ever
         if t >= next_block:
             length = round(rng.uniform(0.2, 0.8), 2)
             rows.append((round(t, 2), 0.0, 0.0, 0.0, 0.0, 1))
