@@ -134,7 +134,9 @@ class ScanLedger:
         self.last_ack_at = recv_stamp
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
-        if self._here(rec):
+        route = _route(rec)  # the route the scan was sent under: taken before the ack names its edge
+        here = self.route is None or route == self.route
+        if here:
             self._route_answered = max(self._route_answered, ack.seq)
             if rtt >= 0:
                 self._round_trip(rtt)
@@ -151,7 +153,6 @@ class ScanLedger:
             self.interarrivals_seen += 1
         if ack.seq in self.pending:
             del self.pending[ack.seq]
-            route = _route(rec)
             newest = self._newest_answer
             if newest is None or newest[:2] != route or ack.seq > newest[2]:
                 self._newest_answer = (*route, ack.seq)
@@ -167,7 +168,7 @@ class ScanLedger:
                 if math.isfinite(ack.queue_time) and math.isfinite(ack.proc_time):
                     self.edge_times.append(edge_time)
                 self._acked_bytes.append((recv_stamp, nbytes))
-                if (self.route is None or route == self.route) and rtt >= 0:  # (``rec`` names ack.edge now)
+                if here and rtt >= 0:
                     self.route_acks += 1
                     self.route_rtt_min = min(self.route_rtt_min, rtt)
                 if self.first_acked_at is None:
