@@ -6,7 +6,11 @@ Over a gap the robot may also have stopped or reversed, and from a constant-velo
 off KISS-ICP converges to a wrong place along a street, where the scan still half fits: a scan
 after a gap is registered from three guesses (the motion kept, stopped, reversed, see
 ``GAP_MOTIONS``) and the one whose result overlaps the local map best is kept; the kept motion
-wins unless another overlaps by ``GAP_MARGIN`` more.
+wins unless another overlaps by ``GAP_MARGIN`` more. A guess within KISS-ICP's reach of the
+first is tried only when the best result so far finds less than ``GAP_LOST`` of the scan in the
+map (ICP from a guess tens of degrees off in a turn settles in the wrong place even within
+its correspondence distance), and so are the turned guesses: the first turned left and right by
+the robot's fastest turn yet over the gap and half of it (``TURN_FACTORS``).
 
 A mapper can continue another's trajectory (``continue_from``): seeded from a checkpoint
 (mapping/checkpoint.py), its poses stay in the checkpoint's frame, and the poses the robot
@@ -47,7 +51,7 @@ class Registration:
     map_points: int
     proc_time: float  # seconds of registration on the edge (ICP + global map)
     icp_time: float  # seconds of KISS-ICP alone
-    gap_motion: str = ""  # after a gap, the guess kept: "kept", "stopped" or "reversed" (GAP_MOTIONS)
+    gap_motion: str = ""  # after a gap, the guess kept: GAP_MOTIONS' names, "turned_left" or "turned_right"
 
 
 # The guesses a scan after a gap is registered from: the motion per period over the gap times
@@ -57,9 +61,33 @@ GAP_MOTIONS = (("kept", 1.0), ("stopped", 0.0), ("reversed", -1.0))
 # cases seen (a turn back, a stop) won by 0.39-0.52; under a loaded edge with 5-14 lost scans,
 # guesses that all missed differed by 0.05-0.16, where switching is a coin toss
 GAP_MARGIN = 0.2
+# A result that finds less than this share of the scan's points in the map has failed: every
+# guess is tried then, those within ICP's reach of the first too (a satellite run's scan 343,
+# three periods after the last in a turn's onset: the kept guess's result 0.13, wrong guesses
+# 0.09-0.22, right results of gap scans in the same stretch 0.75-0.88)
+GAP_LOST = 0.5
+# The turned guesses: the first turned left and right by these fractions of the robot's fastest
+# yaw per period yet (``RobotMapper.turn_rate``) times the gap, at most TURN_MAX radians
+TURN_FACTORS = (0.5, 1.0)
+TURN_MAX = np.radians(90.0)
+TURN_MIN = np.radians(1.0)  # a turned guess closer to the first than this is not tried
+# The fastest yaw per period a registration may teach: beyond it a pair of poses is a wrong
+# registration, not a turn
+TURN_RATE_MAX = np.radians(30.0)
 # ICP iterations for the other guesses (KISS-ICP's own limit is 500): from a guess that is wrong
 # ICP wanders for hundreds of iterations, and the winner is refined by the full registration
 GAP_PROBE_ITERATIONS = 30
+
+
+Guesses = list[tuple[str, np.ndarray]]
+
+
+def _yaw(angle: float) -> np.ndarray:
+    """A rotation by ``angle`` radians about the z axis, as a 4x4 pose."""
+    m = np.eye(4)
+    c, s = np.cos(angle), np.sin(angle)
+    m[:2, :2] = [[c, -s], [s, c]]
+    return m
 
 
 def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
@@ -70,7 +98,7 @@ def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
 
 def map_overlap(points: np.ndarray, pose: np.ndarray, map_keys: np.ndarray, cell: float) -> float:
     """The share of ``points`` (sensor frame) that, placed at ``pose``, fall in a cell of the map
-    (``map_keys``: the sorted unique ``_cell_keys`` of its points)."""
+    (``map_keys``: the sorted ``_cell_keys`` of its points, duplicates allowed)."""
     if len(points) == 0 or len(map_keys) == 0:
         return 0.0
     keys = _cell_keys(points @ pose[:3, :3].T + pose[:3, 3], cell)
@@ -157,6 +185,7 @@ class RobotMapper:
         map_resolution: float = 0.1,
         max_gap: int = 50,
         gap_motions: tuple[tuple[str, float], ...] = GAP_MOTIONS,
+        turn_factors: tuple[float, ...] | None = None,
     ) -> None:
         KISSConfig, KissICP = load_kiss_icp()
         config = KISSConfig()
@@ -174,6 +203,9 @@ class RobotMapper:
         self.max_gap = max_gap  # beyond this many lost scans, constant velocity means nothing
         self.deskew = deskew
         self.gap_motions = gap_motions  # the guesses a scan after a gap is registered from
+        # and the turned ones (None: TURN_FACTORS; empty: no turned guesses)
+        self.turn_factors = TURN_FACTORS if turn_factors is None else turn_factors
+        self.turn_rate = 0.0  # the fastest yaw per period yet between registered scans (rad; a gap: its mean)
         from kiss_icp.registration import Registration as IcpRegistration
 
         self._probe = IcpRegistration(  # the other guesses' ICP, bounded
@@ -186,6 +218,7 @@ class RobotMapper:
         self.registered = 0  # scans registered here (the trajectory also holds the robot's poses)
         self.after_gap = 0  # of them, scans after a gap
         self.guessed = 0  # of those, registered from more than one guess (_register_after_gap)
+        self.turned = 0  # of those, registered from a turned guess
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
@@ -197,16 +230,17 @@ class RobotMapper:
         # constant-velocity model over the gap, and bring it back to one period afterwards.
         gap = int(seq) - self.last_seq if self.last_seq is not None else 1
         stretch = 1 < gap <= self.max_gap
+        previous = self.odometry.last_pose.copy()
         if stretch and len(stamps):
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        guesses = self._gap_guesses(gap, frame) if stretch and not self.odometry.local_map.empty() else []
-        self.after_gap += bool(guesses)
-        self.guessed += len(guesses) > 1
-        gap_motion = guesses[0][0] if guesses else ""
-        if len(guesses) > 1:
-            keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses)
+        after_gap = stretch and not self.odometry.local_map.empty()
+        self.after_gap += after_gap
+        gap_motion = ""
+        if after_gap:
+            guesses, spare = self._gap_guesses(gap, frame)
+            keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses, spare)
         else:
             if stretch:
                 self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, gap))
@@ -218,6 +252,11 @@ class RobotMapper:
                 self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
+        if 1 <= gap <= self.max_gap and self.last_seq is not None:  # the yaw per period since the last
+            d = np.linalg.inv(previous) @ pose
+            yaw = abs(float(np.arctan2(d[1, 0], d[0, 0]))) / gap
+            if yaw <= TURN_RATE_MAX:
+                self.turn_rate = max(self.turn_rate, yaw)
         # Grow the global map with the scan in world coordinates
         self.global_map.add(frame, pose)
         self.seqs.append(int(seq))
@@ -234,51 +273,69 @@ class RobotMapper:
             gap_motion=gap_motion,
         )
 
-    def _gap_guesses(self, gap: int, frame: np.ndarray) -> list[tuple[str, np.ndarray]]:
-        """The initial guesses for a scan ``gap`` periods after the last one (``gap_motions``):
-        the first, and each other that moves the scan's points farther from where the first puts
-        them than KISS-ICP's correspondence distance (3 sigma): the translation apart plus the
-        chord the rotation apart moves a point at the scan's median range through
-        (``guess_distance``). A guess within that reach of the first is not tried: ICP from the
-        first reaches it (a slow robot, a short gap, a slow turn). Translation alone missed a
-        turn: in the simulator's sharpest one (yaw +5.4 degrees a scan, then swinging back at
-        -4.2) a scan two periods after the last was guessed 19 degrees past where the robot was,
-        which moves a point 10 m away by 1.9 m against a reach of 1.4; the other guesses, a few
-        centimetres from that one in translation, were never tried, and ICP settled 16 degrees
-        off for the rest of the run. The median range, not ``max_range`` (KISS-ICP's own model
-        error): at 40 m a turn of 2 degrees is out of reach, and trying the other guesses on every
-        gap in a turn costs the edge time that holds the robot's window (README, Lost scans)."""
+    def _gap_guesses(self, gap: int, frame: np.ndarray) -> tuple[Guesses, Guesses]:
+        """The initial guesses for a scan ``gap`` periods after the last one, in two lists: the
+        first of ``gap_motions`` and each other that moves the scan's points farther from where
+        the first puts them than KISS-ICP's correspondence distance (3 sigma), tried in turn; and
+        the spare ones, tried only when those all failed (``GAP_LOST``): the other motions within
+        that reach, and the turned guesses (the first turned left and right about the sensor's z
+        axis by ``turn_factors`` x the gap x ``turn_rate``: a ground robot's turn).
+        How far apart: the translation plus the chord the rotation apart moves a point at the
+        scan's median range through (``guess_distance``). Translation alone missed a turn: in the
+        simulator's sharpest one (yaw +5.4 degrees a scan, then swinging back at -4.2) a scan two
+        periods after the last was guessed 19 degrees past where the robot was, which moves a
+        point 10 m away by 1.9 m against a reach of 1.4; the other guesses, a few centimetres
+        from that one in translation, were never tried, and ICP settled 16 degrees off for the
+        rest of the run. The median range, not ``max_range`` (KISS-ICP's own model error): at 40 m
+        a turn of 2 degrees is out of reach, and trying the other guesses on every gap in a turn
+        costs the edge time that holds the robot's window (README, Lost scans). Within reach is
+        not always reached: after a few gaps sigma grows (1.6 m: a reach of 4.8 m), and at a
+        turn's onset three periods after the last scan ICP settled 20 degrees off from a kept
+        guess 2.9 m from the right one; those are the spare guesses."""
         odo = self.odometry
         sigma = odo.adaptive_threshold.get_threshold()
-        guesses = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
+        motions = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
                    for name, factor in self.gap_motions]
-        first = guesses[0][1]
+        first = motions[0][1]
         reach = 3 * sigma
         ranges = np.linalg.norm(frame[:, :3], axis=1)
         within = ranges[ranges <= self.config.data.max_range]
         r = float(np.median(within)) if len(within) else 0.0
-        return guesses[:1] + [(n, g) for n, g in guesses[1:] if guess_distance(first, g, r) > reach]
+        far = [guess_distance(first, g, r) > reach for _, g in motions[1:]]
+        guesses = motions[:1] + [m for m, f in zip(motions[1:], far, strict=True) if f]
+        spare = [m for m, f in zip(motions[1:], far, strict=True) if not f]
+        for factor in self.turn_factors:
+            angle = min(TURN_MAX, factor * gap * self.turn_rate)
+            if angle >= TURN_MIN:
+                spare += [("turned_left", first @ _yaw(angle)), ("turned_right", first @ _yaw(-angle))]
+        return guesses, spare
 
-    def _register_after_gap(self, seq: int, frame: np.ndarray, gap: int,
-                            guesses: list[tuple[str, np.ndarray]]) -> tuple[np.ndarray, str]:
+    def _register_after_gap(self, seq: int, frame: np.ndarray, gap: int, guesses: Guesses,
+                            spare: Guesses) -> tuple[np.ndarray, str]:
         """KISS-ICP's ``register_frame`` for a scan ``gap`` periods after the last one, from each
-        of ``guesses`` (``_gap_guesses``); keeps the result that overlaps the local map best (the
-        first unless another adds ``GAP_MARGIN``, so once a result overlaps by ``1 - GAP_MARGIN``
-        no other guess is tried). ``frame`` is deskewed already.
+        of ``guesses`` and, when the best of their results overlaps the local map by less than
+        ``GAP_LOST``, of ``spare`` (``_gap_guesses``); keeps the result that overlaps the local map
+        best (the first unless another adds ``GAP_MARGIN``, so once a result overlaps by
+        ``1 - GAP_MARGIN`` no other guess is tried). ``frame`` is deskewed already.
         Returns the points aligned and the name of the guess kept."""
         odo = self.odometry
         frame = odo.preprocessor.preprocess(frame, np.empty(0), odo.last_delta)  # the range limits
         source, frame_down = odo.voxelize(frame)
         sigma = odo.adaptive_threshold.get_threshold()
         cell = 0.5 * self.voxel_size
-        map_keys = np.unique(_cell_keys(odo.local_map.point_cloud(), cell))
+        scored = len(guesses) > 1 or bool(spare)
+        # sorted, duplicates left in: np.unique (hashing, numpy 2.4) took 3-5x as long on a local map
+        map_keys = np.sort(_cell_keys(odo.local_map.point_cloud(), cell)) if scored else np.empty(0)
         best: tuple[float, str, np.ndarray, np.ndarray] | None = None
-        kept = 0.0
-        for i, (name, guess) in enumerate(guesses):
+        kept, tried = 0.0, 0
+        for i, (name, guess) in enumerate([*guesses, *spare]):
+            if i == len(guesses) and best is not None and best[0] >= GAP_LOST:
+                break  # the spare guesses only after a failure
             pose = (odo.registration if i == 0 else self._probe).align_points_to_map(
                 points=source, voxel_map=odo.local_map, initial_guess=guess,
                 max_correspondance_distance=3 * sigma, kernel=sigma)
-            overlap = map_overlap(source, pose, map_keys, cell)
+            tried += 1
+            overlap = map_overlap(source, pose, map_keys, cell) if scored else 1.0
             if best is None:
                 kept = overlap
             if best is None or overlap > best[0] + GAP_MARGIN:
@@ -286,8 +343,10 @@ class RobotMapper:
             if best[0] >= 1.0 - GAP_MARGIN:
                 break  # no other guess can beat it by the margin
         assert best is not None
+        self.guessed += tried > 1
         _, name, guess, pose = best
         if name != guesses[0][0]:  # converge fully from where the bounded probe got
+            self.turned += name.startswith("turned")
             pose = odo.registration.align_points_to_map(
                 points=source, voxel_map=odo.local_map, initial_guess=pose,
                 max_correspondance_distance=3 * sigma, kernel=sigma)
