@@ -135,7 +135,7 @@ class ScanLedger:
         rtt = recv_stamp - ack.send_stamp
         edge_time = sum(x for x in (ack.queue_time, ack.proc_time) if math.isfinite(x))
         route = _route(rec)  # the route the scan was sent under: taken before the ack names its edge
-        here = self.route is None or route == self.route
+        here = self._here(rec)
         if here:
             self._route_answered = max(self._route_answered, ack.seq)
             if rtt >= 0:

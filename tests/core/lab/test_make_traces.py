@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from zoffload.lab.link.make_traces import TRACES, main, to_csv
+from zoffload.lab.link.make_traces import TRACES, cellular, main, to_csv
 from zoffload.lab.link.trace import load_trace, parse_trace
 
 
@@ -32,8 +32,6 @@ def test_cellular_is_a_bounded_random_walk_with_outages() -> None:
 
 
 def test_an_outage_at_the_end_of_the_trace_still_ends() -> None:
-    from zoffload.lab.link.make_traces import cellular
-
     for seed in range(1, 40):  # seed 2 (cellular-heldout) started an outage 0.9 s before the end
         rows = cellular(seed, duration=60.0)
         assert not rows[-1][5], seed
