@@ -7,12 +7,13 @@
 ``lost_overtaken`` (not a bucket: a share of ``lost``): lost while a later scan sent the same way
 (edge and epoch) was answered. An edge answers a robot's scans in order, one answer each, so the
 scan or its answer was lost on the way (the transport), not with the edge.
-``sending``: handed to the sender thread, not published yet (at most two: the one it is encoding
-and the one waiting in its slot). ``edge_refused``: the edge did not admit this robot (allowlist,
-``max_robots``). ``lost``: no ack within the timeout. ``late``: its ack came after that (moved out
-of ``lost``). Round-trip times use the robot's clock only: the send stamp travels with the scan
-and is echoed. The ledger also keeps what the scale policy reads about the link: the last acked
-scans (bytes, network time, T, slot), the bytes acked in the last second, the last ack's time.
+``sending``: handed to the sender thread, not published yet (at most two: the one it is encoding,
+or holding until the window has a slot for it, and the one waiting in its slot).
+``edge_refused``: the edge did not admit this robot (allowlist, ``max_robots``). ``lost``: no ack
+within the timeout. ``late``: its ack came after that (moved out of ``lost``). Round-trip times
+use the robot's clock only: the send stamp travels with the scan and is echoed. The ledger also
+keeps what the scale policy reads about the link: the last acked scans (bytes, network time, T,
+slot), the bytes acked in the last second, the last ack's time.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ class ScanLedger:
     recent: deque[AckInfo] = field(default_factory=lambda: deque(maxlen=24))  # acked scans
     _acked_bytes: deque[tuple[float, int]] = field(default_factory=deque)  # (ack time, bytes)
     window_drops: int = 0  # scans held back because the window of unanswered ones was full
+    window_released: int = 0  # ... and sent when an ack freed a slot within a period (window_hold)
     edge_times: deque[float] = field(default_factory=lambda: deque(maxlen=20))  # queue + registration [s]
     _newest_answer: tuple[str, int, int] | None = None  # (edge, epoch, seq) of the newest answer
     route: tuple[str, int] | None = None  # the (edge, epoch) scans go to now (``on_route``)

@@ -7,6 +7,10 @@ then only this thread waits. An item handed over while the previous one still wa
 replaces it (``offer`` returns the replaced one, never sent, for the caller to book), so the link
 always gets the newest scan next and the loop never blocks — the BLOCK_FIRST semantics (one
 message waits for room, newer ones do not queue behind it) kept one level up.
+
+An optional ``gate`` holds an item back until it may go (for scans: a slot in the window of
+unanswered ones): the thread asks it again on every ``poke()`` (an ack) and every ``POLL`` seconds,
+and gives the item up (``on_drop``) when the gate says so or when a newer item is handed over.
 """
 
 from __future__ import annotations
@@ -19,10 +23,18 @@ from typing import Generic, TypeVar
 T = TypeVar("T")
 log = logging.getLogger("zoffload.robot.sender")
 
+POLL = 0.01  # seconds between the gate's checks on an item it holds, when nothing pokes
+
 
 class Sender(Generic[T]):
-    def __init__(self, send: Callable[[T], None], name: str = "sender") -> None:
+    def __init__(self, send: Callable[[T], None], name: str = "sender",
+                 gate: Callable[[T], bool | None] | None = None,
+                 on_drop: Callable[[T], None] | None = None) -> None:
+        """``gate(item)``: True to send it now, False to hold it, None to give it up; an item
+        given up, or held when a newer one comes, goes to ``on_drop`` (never sent)."""
         self._send = send
+        self._gate = gate
+        self._on_drop = on_drop
         self._slot: T | None = None
         self._busy = False
         self._closing = False
@@ -30,6 +42,8 @@ class Sender(Generic[T]):
         self.sent = 0
         self.replaced = 0
         self.errors = 0
+        self.held = 0  # items the gate held before sending them
+        self.given_up = 0  # items the gate held and never sent
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
@@ -43,6 +57,11 @@ class Sender(Generic[T]):
                 self.replaced += 1
             self._cond.notify()
         return old
+
+    def poke(self) -> None:
+        """Something the gate reads changed (an ack came): ask it again now."""
+        with self._cond:
+            self._cond.notify()
 
     @property
     def idle(self) -> bool:
@@ -72,11 +91,33 @@ class Sender(Generic[T]):
                 item, self._slot = self._slot, None
                 self._busy = True
             try:
-                self._send(item)
-                self.sent += 1
+                if self._through_gate(item):
+                    self._send(item)
+                    self.sent += 1
             except Exception:  # one bad item must not end the thread
                 self.errors += 1
                 log.exception("sending failed")
             finally:
                 with self._cond:
                     self._busy = False
+
+    def _through_gate(self, item: T) -> bool:
+        """Hold ``item`` while the gate says so; False when it was given up (and handed to
+        ``on_drop``): the gate said so, a newer item came, or the sender is closing."""
+        if self._gate is None:
+            return True
+        waited = False
+        while True:
+            verdict = self._gate(item)  # (outside the condition: the gate takes the caller's lock)
+            if verdict:
+                self.held += waited
+                return True
+            with self._cond:
+                if verdict is not None and self._slot is None and not self._closing:
+                    waited = True
+                    self._cond.wait(POLL)
+                    continue
+            self.given_up += 1
+            if self._on_drop is not None:
+                self._on_drop(item)
+            return False

@@ -509,6 +509,11 @@ class RobotSettings(_Strict):
     window_path: bool = Field(
         default=True, description="widen the window of unanswered scans to the path's quickest round trip"
     )
+    # A scan the window holds back waits for a slot until the next scan is due (a period) and goes
+    # when an ack frees one; else (or off) it is dropped at the source, unannounced
+    window_hold: bool = Field(
+        default=True, description="a scan the full window holds back waits up to a period for a free slot"
+    )
     status_period: float = Field(default=1.0, gt=0, description="seconds between status messages")
     heap_trim_period: float = Field(
         default=60.0, ge=0,

@@ -61,3 +61,49 @@ def test_close_hands_back_an_item_stuck_behind_a_dead_link() -> None:
     s.offer(2)
     assert s.close(0.2) == 2  # 1 is stuck in its send, 2 never left
     gate.set()
+
+
+def _wait_for(cond: object, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond() and time.monotonic() < deadline:  # type: ignore[operator]
+        time.sleep(0.005)
+
+
+def test_a_gated_item_waits_for_its_gate_and_goes_when_poked() -> None:
+    room = [False]
+    sent: list[int] = []
+    s: Sender[int] = Sender(sent.append, gate=lambda item: room[0])
+    s.start()
+    s.offer(1)
+    time.sleep(0.1)  # ten polls: the gate still says no
+    assert sent == [] and not s.idle
+    room[0] = True  # an ack freed a slot ...
+    s.poke()  # ... and says so
+    _wait_for(lambda: sent == [1])
+    assert sent == [1] and s.held == 1 and s.given_up == 0
+    assert s.close(1.0) is None
+
+
+def test_a_held_item_is_given_up_for_a_newer_one_or_when_its_gate_says_so() -> None:
+    sent: list[int] = []
+    dropped: list[int] = []
+    verdicts = {1: False, 2: True, 3: None}  # 1 held (no room), 2 goes, 3 given up at once
+    s: Sender[int] = Sender(sent.append, gate=verdicts.get, on_drop=dropped.append)
+    s.start()
+    s.offer(1)
+    time.sleep(0.05)  # the thread holds 1 at its gate
+    assert s.offer(2) is None  # the slot was empty: the thread took 1 out of it
+    _wait_for(lambda: sent == [2])
+    assert dropped == [1] and sent == [2]  # the newer item went, the held one was given up
+    s.offer(3)
+    _wait_for(lambda: dropped == [1, 3])
+    assert dropped == [1, 3] and sent == [2] and s.given_up == 2 and s.held == 0
+
+
+def test_closing_gives_up_a_held_item() -> None:
+    dropped: list[int] = []
+    s: Sender[int] = Sender(lambda item: None, gate=lambda item: False, on_drop=dropped.append)
+    s.start()
+    s.offer(1)
+    time.sleep(0.05)
+    assert s.close(1.0) is None and dropped == [1]
