@@ -1,10 +1,12 @@
 """The sender thread's one-slot handoff: the loop never waits, the newest item replaces an unsent
-one, a failing send does not end the thread, closing returns what was never sent."""
+one, a failing send does not end the thread, closing returns what was never sent; an item its gate
+holds goes when poked and is given up for a newer one."""
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from zoffload.robot.sender import Sender
 
@@ -63,9 +65,9 @@ def test_close_hands_back_an_item_stuck_behind_a_dead_link() -> None:
     gate.set()
 
 
-def _wait_for(cond: object, timeout: float = 5.0) -> None:
+def _wait_for(cond: Callable[[], bool], timeout: float = 5.0) -> None:
     deadline = time.monotonic() + timeout
-    while not cond() and time.monotonic() < deadline:  # type: ignore[operator]
+    while not cond() and time.monotonic() < deadline:
         time.sleep(0.005)
 
 
