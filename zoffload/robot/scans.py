@@ -276,10 +276,8 @@ class ScanStreamer:
         record.update(edge=target[0], epoch=target[1])
         with self._lock:
             self.ledger.on_route(target, time.monotonic())
-            window = self.ledger.window(self.opts.max_in_flight, self._period(),
-                                        edge=self.opts.window_edge_time, path=self.opts.window_path)
+            window, full = self._window()
             self._window_max = max(self._window_max, window)
-            full = bool(window) and self.ledger.in_flight_here >= window
         held: tuple[float, str] | None = None
         if full:
             # in a stall the policy skips it on purpose (announced); else the window holds it back:
@@ -350,9 +348,14 @@ class ScanStreamer:
         with self._lock:
             if item.seq not in self.ledger.sending or time.monotonic() - item.held[0] > self._period():
                 return None
-            window = self.ledger.window(self.opts.max_in_flight, self._period(),
-                                        edge=self.opts.window_edge_time, path=self.opts.window_path)
-            return not window or self.ledger.in_flight_here < window
+            return not self._window()[1]
+
+    def _window(self) -> tuple[int, bool]:
+        """The window of unanswered scans now (``ScanLedger.window``) and whether the scans in
+        flight on the current route fill it (under the lock)."""
+        window = self.ledger.window(self.opts.max_in_flight, self._period(),
+                                    edge=self.opts.window_edge_time, path=self.opts.window_path)
+        return window, bool(window) and self.ledger.in_flight_here >= window
 
     def _held_out(self, item: _Outgoing) -> None:
         """A scan the window held back and no slot came for (or a newer scan came first): dropped
