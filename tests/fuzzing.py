@@ -5,6 +5,7 @@ same corpus, so a failure found once is found again."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 from collections.abc import Iterator
@@ -70,6 +71,7 @@ def valid_messages(robot: str = "robot1", edge: str = "edge1") -> dict[str, byte
         "map_v7": wire.MapReply(robot=robot, scans=1, points=_PTS[:10], seqs=np.array([0]),
                                 poses=np.eye(4)[None], edge=edge),
         "checkpoint": cp,
+        "checkpoint_v8": dataclasses.replace(cp, turn_rate=0.05),  # the turn rate said (version 8)
         "attach": wire.Attach(robot=robot, epoch=2, max_range=50.0, voxel_max=0.07, rate_hz=10.0,
                               checkpoint=wire.encode(cp), local_seqs=np.array([11, 12]),
                               local_poses=np.stack([np.eye(4)] * 2)),

@@ -116,7 +116,7 @@ class BoundedMapper:
         if self.inner.last_seq is None:
             return None
         cp = take_checkpoint(self.inner.odometry, robot, edge, epoch, self.inner.last_seq, stamp, resolution,
-                             coded)
+                             coded, self.inner.turn_rate)
         return replace(cp, final=True) if final else cp
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:

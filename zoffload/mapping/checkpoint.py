@@ -35,12 +35,14 @@ STEP = 0.1  # of the map's resolution: its quantisation step when coded (the who
 
 
 def take_checkpoint(odometry: Any, robot: str, edge: str, epoch: int, seq: int, stamp: float,
-                    resolution: float | None = None, coded: bool = True) -> wire.Checkpoint:
+                    resolution: float | None = None, coded: bool = True, turn_rate: float = 0.0
+                    ) -> wire.Checkpoint:
     """The state of ``odometry`` (a ``kiss_icp.KissICP``) after scan ``seq``; the local map is
     coarsened to one point per ``resolution`` voxel (default: half KISS-ICP's voxel size coded, its
     voxel size in float32, as before version 6; 0: the whole local map, every point KISS-ICP keeps:
     a mapper seeded from it continues within a centimetre) and, ``coded``, sent as a q16d payload
-    on steps of a tenth of that (version 6; float32 points for a peer that reads 5 or older)."""
+    on steps of a tenth of that (version 6; float32 points for a peer that reads 5 or older);
+    ``turn_rate`` is the mapper's (``RobotMapper.turn_rate``; version 8, 0: not said)."""
     cfg = odometry.config
     voxel = float(cfg.mapping.voxel_size)
     local = np.asarray(odometry.local_map.point_cloud(), np.float64).reshape(-1, 3)
@@ -51,7 +53,8 @@ def take_checkpoint(odometry: Any, robot: str, edge: str, epoch: int, seq: int, 
         max_range=float(cfg.data.max_range), min_range=float(cfg.data.min_range),
         max_points_per_voxel=int(cfg.mapping.max_points_per_voxel),
         pose=np.asarray(odometry.last_pose, np.float64), delta=np.asarray(odometry.last_delta, np.float64),
-        points=np.ascontiguousarray(coarse if not coded else coarse[:0], np.float32))
+        points=np.ascontiguousarray(coarse if not coded else coarse[:0], np.float32),
+        turn_rate=min(max(float(turn_rate), 0.0), np.pi))
     if not coded or not len(coarse):
         return cp
     grid = cell if cell > 0 else RESOLUTION * voxel

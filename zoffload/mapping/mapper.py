@@ -365,8 +365,12 @@ class RobotMapper:
         """Continue a trajectory: the odometry is (re-)seeded from ``checkpoint`` when it is newer
         than the last scan this mapper knows (the local map replaced by the checkpoint's), then
         the robot's own poses after that join the trajectory and the last of them becomes the
-        odometry's pose. The global map is kept. Returns whether the odometry was seeded."""
+        odometry's pose. The global map is kept, and the checkpoint's turn rate is taken when it
+        is the faster (a mapper taking over in a turn learns it only from the turn's next scans).
+        Returns whether the odometry was seeded."""
         seeded = False
+        if checkpoint is not None:  # the turn rate the last mapper learnt (version 8; 0: not said)
+            self.turn_rate = max(self.turn_rate, min(float(checkpoint.turn_rate), TURN_RATE_MAX))
         if checkpoint is not None and (self.last_seq is None or checkpoint.seq > self.last_seq):
             matches = config_matches(self.odometry, checkpoint)
             if not matches and self.last_seq is not None:

@@ -12,7 +12,7 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build reads 1 to 7. Version 2 only added fields with defaults (the assignment
+Versions: this build reads 1 to 8. Version 2 only added fields with defaults (the assignment
 epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
 attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
 (a frame shrunk to the edge detector's input). Version 4 added the codec version a frame's sender
@@ -26,7 +26,11 @@ reads (``Attach.reads``); the robot says 6 and sends a coded checkpoint only to 
 status says it reads 6, and an edge codes the checkpoints it sends a robot only when that
 robot's attach said 6 (``Checkpoint.plain`` turns a coded one back into float32). Version 7 added
 the answering edge of a map reply (``MapReply.edge``), sent only on the per-edge map key
-(``keys.map``), which only a querier that reads 7 asks (an older one asks the key before it). A
+(``keys.map``), which only a querier that reads 7 asks (an older one asks the key before it).
+Version 8 added a checkpoint's turn rate (``Checkpoint.turn_rate``: the robot's fastest yaw per
+scan period the mapper saw, which the next mapper's turned guesses after a gap start from); an
+edge puts it in the checkpoints for a robot whose attach said 8, and the robot in the checkpoint
+it hands to an edge whose status says 8. A
 message is sent as the lowest version that carries its fields away from their defaults, else as
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
@@ -34,7 +38,7 @@ detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival
 answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
 everything this one sends it (a passive listener of an older build, such as its viewer, refuses
 the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
-about the label: a message is read by its fields (each checked), whatever version between 1 and 7
+about the label: a message is read by its fields (each checked), whatever version between 1 and 8
 it says it is.
 """
 
@@ -51,7 +55,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5, 6, 7)
+READS = (1, 2, 3, 4, 5, 6, 7, 8)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -407,6 +411,9 @@ class Checkpoint(Message):
     n_points: int = _num(-1, lo=-1, hi=1e12, since=6)
     origin: np.ndarray | None = _array(ArraySpec("<f8", (3,)), optional=True, since=6)
     packed: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True, since=6)
+    # Version 8: the fastest yaw per scan period (rad) the mapper saw between registered scans (0:
+    # not said); the next mapper turns its guesses after a gap by it (mapping/mapper.py)
+    turn_rate: float = _num(0.0, lo=0.0, hi=math.pi, since=8)
 
     def __post_init__(self) -> None:
         if self.packed is not None and (self.origin is None or self.quant_step <= 0 or self.n_points < 0

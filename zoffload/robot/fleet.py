@@ -26,7 +26,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -319,7 +319,10 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
                    poses: np.ndarray, edge_reads: int) -> wire.Attach:
     """The attach for an edge that reads codec version ``edge_reads``: from 6 on, the robot says
     it reads 6 (the edge then codes its checkpoints) and sends its checkpoint coded; to an older
-    edge, a version-5 attach with the checkpoint's map as float32 points."""
+    edge, a version-5 attach with the checkpoint's map as float32 points; the checkpoint's turn rate
+    only to an edge that reads 8."""
+    if cp is not None and edge_reads < 8 and cp.turn_rate:
+        cp = replace(cp, turn_rate=0.0)
     if cp is not None and edge_reads < 6:
         cp = cp.plain()
     return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,

@@ -71,6 +71,7 @@ class LocalOdometry:
         self._period_checkpointed = False
         self._lock = threading.Lock()
         self._checkpoint: wire.Checkpoint | None = None  # our own, the newest
+        self._turn_rate = 0.0  # the edge's, from the checkpoint a period starts from: its own carry it on
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_LOCAL_POSES)
         self.motion = np.eye(4)  # the motion per scan period after the last registration
 
@@ -100,6 +101,7 @@ class LocalOdometry:
         if checkpoint is not None:
             seed(odo, checkpoint)
             last_seq = checkpoint.seq
+        turn_rate = checkpoint.turn_rate if checkpoint is not None else 0.0
         newer = [(s, p) for s, p in acked if last_seq is None or s > last_seq]
         if newer:
             s, p = newer[-1]
@@ -112,6 +114,7 @@ class LocalOdometry:
             last_seq = s
         with self._lock:
             self._odometry, self._last_seq, self._since_checkpoint = odo, last_seq, 0
+            self._turn_rate = turn_rate
             self._period_checkpointed = False
 
     def end(self) -> None:
@@ -157,7 +160,8 @@ class LocalOdometry:
             self._since_checkpoint += 1
             # A period's first registration takes one at once (the previous one is of another period)
             if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:
-                self._checkpoint = take_checkpoint(odo, self.robot, "", 0, seq, stamp, self.voxel)
+                self._checkpoint = take_checkpoint(odo, self.robot, "", 0, seq, stamp, self.voxel,
+                                                   turn_rate=self._turn_rate)
                 self._since_checkpoint, self._period_checkpointed = 0, True
         self.registered += 1
         cpu = (time.thread_time() - c0) * 1e3

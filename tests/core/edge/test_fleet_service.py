@@ -328,14 +328,15 @@ def test_a_scan_with_the_robots_prior_after_an_outage_is_predicted_from_it(free_
 
 def test_a_robot_that_reads_6_gets_coded_checkpoints_and_a_corrupt_one_is_refused(free_port: int) -> None:
     """Version 6: a robot whose attach says it reads 6 gets its checkpoints' local map coded (a
-    few bytes a point), one that does not (an older robot) float32 points. An attach whose coded
+    few bytes a point), one that does not (an older robot) float32 points; version 8 adds the
+    turn rate. An attach whose coded
     map does not decode is refused there, not when the map is needed."""
-    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=2),
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=4),
                              checkpoint_every=3)
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
         got = {}
-        for robot, reads in (("r1", 6), ("r2", 5)):
+        for robot, reads in (("r1", 6), ("r2", 5), ("r4", 8)):
             cps = Inbox(s, KEYS.checkpoints(robot), wire.Checkpoint)
             assert attach(s, robot, 1, reads=reads).accepted
             pub = s.declare_publisher(KEYS.scan(robot))
@@ -344,6 +345,10 @@ def test_a_robot_that_reads_6_gets_coded_checkpoints_and_a_corrupt_one_is_refuse
             cps.wait(2)
             got[robot] = cps.items[-1]
         coded, plain = got["r1"], got["r2"]
+        # version 8: the turn rate the mapper learnt goes to a robot that reads 8 only (the
+        # simulated robot turns a little between any two scans)
+        assert got["r4"].turn_rate > 0 and got["r4"].packed is not None
+        assert coded.turn_rate == plain.turn_rate == 0.0
         assert coded.packed is not None and len(coded.points) == 0 and coded.n_points > 1000
         assert plain.packed is None and len(plain.points) > 1000
         # the older robot's map at the mapper's voxel, as before; the coded one at half of it, more

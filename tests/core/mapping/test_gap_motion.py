@@ -9,6 +9,8 @@ moving on, the same pose), so the tests fail if the guesses stop mattering."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,33 @@ def test_a_turn_begun_during_a_gap_is_found_from_a_turned_guess() -> None:
         else:
             assert off < 5.0 and got[343].gap_motion == "turned_right" and m.turned == 1, (off, m.turned)
             assert np.degrees(m.turn_rate) > 4.0  # learnt from the turn before (5.4 degrees a scan)
+
+
+def test_a_mapper_taking_over_before_the_turn_finds_it_with_the_handed_turn_rate() -> None:
+    """The same fade and turn, the edge failing over after scan 337: the next mapper continues
+    from the checkpoint (through the wire) and meets the turn's gap before it has seen a turn of
+    its own. With the turn rate the checkpoint hands on (version 8) its turned guess finds the
+    turn; without it (an older edge's checkpoint) ICP settles 20 degrees off, as the first
+    mapper did before turned guesses."""
+    from zoffload.mapping.checkpoint import take_checkpoint
+    from zoffload.protocol import wire
+
+    path = [*range(230, 257), *range(259, 347, 3)]
+    scans = {i: voxel_downsample(SRC.read(i).points, 0.14 if i > 256 else 0.0344) for i in path}
+    truth = np.linalg.inv(SRC.read(230).gt_pose) @ SRC.read(343).gt_pose
+    first = RobotMapper(0.4, SRC.max_range)
+    got = {i: first.register(i, scans[i]) for i in path if i <= 337}
+    assert np.degrees(first.turn_rate) > 4.0
+    sent = take_checkpoint(first.odometry, "r1", "e1", 1, 337, 0.0, turn_rate=first.turn_rate)
+    for hand in (True, False):
+        cp = wire.decode(wire.encode(sent if hand else dataclasses.replace(sent, turn_rate=0.0)),
+                         expect=wire.Checkpoint)
+        nxt = RobotMapper(0.4, SRC.max_range)
+        assert nxt.continue_from(cp, np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        assert nxt.turn_rate == pytest.approx(first.turn_rate if hand else 0.0)
+        after = {i: nxt.register(i, scans[i]) for i in path if i > 337}
+        off = _rotation_deg(np.linalg.inv(truth) @ (np.linalg.inv(got[230].pose) @ after[343].pose))
+        if hand:
+            assert off < 5.0 and nxt.turned == 1, off
+        else:
+            assert off > 10.0 and nxt.turned == 0, off  # the fault the hand-over mends

@@ -345,3 +345,17 @@ def test_a_key_repeated_in_a_message_is_refused() -> None:
     assert wire._unique_keys(iter([("a", 1), ("b", 2)])) == {"a": 1, "b": 2}
     with pytest.raises(ValueError, match="repeated"):
         wire._unique_keys(iter([("a", 1), ("a", 2)]))
+
+
+def test_a_checkpoints_turn_rate_is_version_8_and_bounded() -> None:
+    """Version 8: the turn rate goes only when it is said (a checkpoint without it stays the
+    version it was), and a receiver refuses one that is negative, not finite or past half a turn
+    a period."""
+    cp = dataclasses.replace(_zero_checkpoint(1), n_points=-1, packed=None, origin=None, quant_step=0.0)
+    assert msgpack.unpackb(wire.encode(cp))["v"] == 2 and "turn_rate" not in msgpack.unpackb(wire.encode(cp))
+    turning = dataclasses.replace(cp, turn_rate=0.1)
+    raw = msgpack.unpackb(wire.encode(turning))
+    assert raw["v"] == 8 and wire.decode(wire.encode(turning), expect=wire.Checkpoint).turn_rate == 0.1
+    for bad in (-0.1, float("nan"), float("inf"), 4.0, "0.1"):
+        with pytest.raises(wire.WireError, match="turn_rate"):
+            wire.decode(msgpack.packb({**raw, "turn_rate": bad}, use_bin_type=True), expect=wire.Checkpoint)

@@ -3,6 +3,8 @@ what the next attach carries, the failover timings."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import msgpack
 import numpy as np
 import pytest
@@ -162,6 +164,19 @@ def test_an_edge_that_reads_5_gets_a_version_5_attach_with_a_float32_map() -> No
         got = wire.decode(old["checkpoint"], expect=wire.Checkpoint)
         np.testing.assert_array_equal(got.points, cp.cloud())
     assert attach_message("r1", 7, sensor, None, seqs, poses, 5).checkpoint == b""
+
+
+def test_the_turn_rate_goes_only_to_an_edge_that_reads_8() -> None:
+    """Version 8: the checkpoint the robot hands on keeps the turn rate its mapper learnt for an
+    edge that reads 8; an older edge gets the checkpoint without it, as the version it reads."""
+    cp = dataclasses.replace(checkpoint("e1", 3, 20), turn_rate=0.09)
+    sensor = Sensor(40.0, 0.07, 10.0)
+    seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    for edge_reads, rate, newest in ((8, 0.09, 8), (7, 0.0, 2), (6, 0.0, 2), (5, 0.0, 2)):
+        data = wire.encode(attach_message("r1", 4, sensor, cp, seqs, poses, edge_reads))
+        inner = msgpack.unpackb(msgpack.unpackb(data)["checkpoint"])
+        assert inner["v"] == newest and inner.get("turn_rate", 0.0) == rate, (edge_reads, inner["v"])
+        assert wire.decode(wire.decode(data, expect=wire.Attach).checkpoint, expect=wire.Checkpoint).seq == 20
 
 
 def test_a_new_edge_is_asked_once_its_status_says_which_version_it_reads() -> None:

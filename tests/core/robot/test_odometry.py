@@ -24,7 +24,8 @@ def edge_run() -> tuple[SimulatedSource, RobotMapper, wire.Checkpoint]:
     for i in range(60):
         mapper.register(i, src.read(i).points)
         if i == 29:
-            cp = take_checkpoint(mapper.odometry, "robot1", "edge1", 7, 29, stamp=2.9)
+            cp = take_checkpoint(mapper.odometry, "robot1", "edge1", 7, 29, stamp=2.9,
+                                 turn_rate=mapper.turn_rate)
     assert cp is not None
     return src, mapper, cp
 
@@ -67,6 +68,8 @@ def test_unanswered_scans_are_caught_up_and_the_snapshot_carries_the_rest(edge_r
     assert snap.checkpoint.seq == 43 and list(snap.seqs) == [32, *range(34, 48)]
     assert snap.poses.shape == (15, 4, 4)
     wire.decode(wire.encode(snap.checkpoint), expect=wire.Checkpoint)  # a valid message
+    # the edge's turn rate (version 8) carries on in the robot's own checkpoints, for the next edge
+    assert snap.checkpoint.turn_rate == cp.turn_rate > 0
     odo.end()
     assert not odo.active and len(odo.snapshot().seqs) == 0 and odo.snapshot().checkpoint is not None
 
