@@ -66,7 +66,7 @@ class DetectExperiment:
     # One inference thread on the edge: robot and edge share this 2-core machine, and an edge on
     # both cores is slowed by whatever the robot runs (measured: 47 -> 71 ms per frame while the
     # robot's detector ran), which a separate edge computer would not be; one thread costs the
-    # edge ~10 % (47.8 against 43.4 ms, README's detector table)
+    # edge ~10 % (47.8 against 43.4 ms, docs/perception-log.md's detector table)
     edge_threads: int = 1
     local_model: str = "nanodet-m"
     seed: int = 0

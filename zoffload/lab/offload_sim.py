@@ -21,7 +21,7 @@ driven on a simulated clock (1 ms steps) against models of what they decide over
 Detections are the real detectors' outputs on the clip frames, computed once and cached
 (``clip_detections``), scored as ``lab/eval/detection.py`` scores a run (asynchronous AP50: each
 result against the ground truth of the frame current when it arrived). The models' constants are
-calibrated on short real runs (see the README's perception section); the simulation ranks
+calibrated on short real runs (see docs/perception-log.md); the simulation ranks
 strategies, the real runs measure them. Where they disagree the real runs decide: the simulation
 does not reproduce what a quarter-core robot's stalling detector costs the edge path (the frames
 sent after a stall), and ranked the rule that holds such a detector back below the old one

@@ -288,7 +288,7 @@ class RobotMapper:
         from that one in translation, were never tried, and ICP settled 16 degrees off for the
         rest of the run. The median range, not ``max_range`` (KISS-ICP's own model error): at 40 m
         a turn of 2 degrees is out of reach, and trying the other guesses on every gap in a turn
-        costs the edge time that holds the robot's window (README, Lost scans). Within reach is
+        costs the edge time that holds the robot's window (README, "Lost scans"). Within reach is
         not always reached: after a few gaps sigma grows (1.6 m: a reach of 4.8 m), and at a
         turn's onset three periods after the last scan ICP settled 20 degrees off from a kept
         guess 2.9 m from the right one; those are the spare guesses."""

@@ -26,7 +26,7 @@ the soonest). The robot (robot/frames.py) does not count a frame as alone after 
 answer came (the lost frame may still be on the link), nor a trial of the other encoding; a switch
 of encoding clears the base and drains at the next frame. Before, the base also took off the
 bottleneck's estimated time then and added it back now; a delivered-rate sample far off made it
-negative (README: "The base latency from frames sent alone").
+negative (docs/perception-log.md: "The base latency from frames sent alone").
 
 Fresh frames, not queues: the edge path holds as many frames as keep its bottleneck busy for a
 base latency, ``ceil(r0 / bottleneck time)``, plus ``queue_frames`` waiting (at most ``window``),
@@ -50,7 +50,7 @@ newest waiting frame and drops the older ones (and the oldest when its queue of 
 so it serves the fresher one. It used
 to count as a loss and shrink the window by a frame; the spares that overflowed the edge's queue
 (60-130 a run) then held the path below its depth, and a fixed "edge only", whose frames the edge
-drops in the same way all the time, finished more frames (README:
+drops in the same way all the time, finished more frames (docs/perception-log.md:
 "A frame the edge's queue replaced is not a loss").
 
 The robot's CPU is a server too: under a CPU quota the detector is paced (``local_ready_at``) to
@@ -62,7 +62,7 @@ time less its CPU time over half a camera period) takes only the frames the edge
 within ``max_age`` (the edge blocked, gone or too slow); one that does not (a robot with the CPU to
 spare) is the second server throughout. Before, the stalling detector also took a frame whenever
 its stall fitted in the work the edge path's bottleneck had queued, but the stall delayed the
-*following* sends all the same (README: "A stalling local detector takes only what the edge
+*following* sends all the same (docs/perception-log.md: "A stalling local detector takes only what the edge
 cannot finish in time"). A slow local measurement drifts back towards the detector's
 CPU time while it is idle (half-life ``recover``), so one slow spell does not idle it for good.
 

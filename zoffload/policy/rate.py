@@ -8,7 +8,7 @@ The DQN sees only ``[T, v]``. This policy also uses:
   the last sent scans really cost on the wire (so payload coding is accounted for);
 * the deadline: a scan should reach the edge within ``deadline`` of the previous one (default
   1.05 sensor periods per slot, 0.105 s at 10 Hz: a little inside the paper's 0.11 s, since
-  arrival times jitter around the period; measured against 1.1 and 1.0 in the README);
+  arrival times jitter around the period; measured against 1.1 and 1.0 in docs/scan-policy-log.md);
 * what each late scan says: whether its network time rose above all the last scans' (it queued:
   its size, or a slower link) or stayed within what the link's jitter does.
 
@@ -22,7 +22,7 @@ the periods it was meant to take) is one of three kinds (``late_cause``):
 * its delay moved within the link's jitter (``jitter``): held. Cutting would not have saved it,
   and on a jittery link the cuts otherwise balance growth at a late share of
   ln(1+g) / (ln(1+g) - ln(1-c)) (18 % for g = 5 %, c = 20 %, tests/core/policy/test_rate.py) with
-  the budget far below what the link carries (README "Ours");
+  the budget far below what the link carries (docs/scan-policy-log.md, "Ours");
 * the first scan after a stall (``stall``): held.
 
 **A standing queue** (``_queue``): late scans in a queue that has stood a while do not rise above
@@ -50,9 +50,10 @@ lowered for the link's jitter: arrivals that jitter by a good part of the period
 (chosen so that about ``jitter_late`` of the scans would be late, from the spread of T around
 the slots). Off by default: robot, edge and emulator share one machine in the experiments, and
 the edge's KISS-ICP on HDL-64 scans makes T jitter by 20 ms on the strong Wi-Fi link too, where
-pacing skipped a third of the scans for nothing (README "Ours"). While the link delivers nothing
-(no ack for ``stall_after`` seconds with scans in flight, the oldest of them past its expected
-answer) scans are skipped too: anything sent then would queue behind the stall and arrive stale;
+pacing skipped a third of the scans for nothing (docs/scan-policy-log.md, "Ours"). While the link
+delivers nothing (no ack for ``stall_after`` seconds with scans in flight, the oldest of them past
+its expected answer) scans are skipped too: anything sent then would queue behind the stall and
+arrive stale;
 and likewise (``queue_stall``) while the newest ack's network time stands ``stall_after`` above
 the path's floor with scans queued behind it (a queue that deep stands on the link: a rain fade on
 a satellite path, where the window is 7 scans deep), at most ``queue_stall_max`` in a row (a path
@@ -281,9 +282,10 @@ class LinkAwareScale:
         its capacity. Late scans in a standing queue do not rise above the last ones and read as
         jitter (``late_cause``), and the scans the window holds back never reach the policy, so
         without this the budget stayed at twice what a slow cellular uplink carried and the window
-        dropped a quarter of the scans (README "Unseen links"). A long path without a queue fills
-        the window too, but at the floor; within a second of a silence (no ack for ``stall_after``,
-        or ``SILENT`` where that is 0; scans in flight or not) the last second's deliveries are not
+        dropped a quarter of the scans (docs/scan-policy-log.md, "Unseen links"). A long path
+        without a queue fills the window too, but at the floor; within a second of a silence (no ack
+        for ``stall_after``, or ``SILENT`` where that is 0; scans in flight or not) the last
+        second's deliveries are not
         a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
         stream's, not the link's."""
         floor = link.floor_net

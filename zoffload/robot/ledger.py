@@ -342,7 +342,7 @@ class ScanLedger:
         a window of 3 held back 43 % of the scans with the link two-thirds idle. ``path_rtt`` is
         the quickest round trip of the route unless the floor of the last ``FLOOR_SPAN`` seconds
         stands higher: a queue must stand on the link for that long, unbroken, before it widens
-        the window that feeds it (a round trip of the last 100 scans did: README, "Unseen
+        the window that feeds it (a round trip of the last 100 scans did: docs/scan-policy-log.md, "Unseen
         links"), and a path that grew longer for good gets its window then. (With at most 4 times
         the base, a 1.8 s path, a satellite reroute, was held to 12 scans in flight, and the scans
         the window dropped, unannounced, left the edge 7-scan gaps in turns.) ``edge`` and ``path``

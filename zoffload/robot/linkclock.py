@@ -9,8 +9,8 @@ unconstrained loopback link (quarter-core robot, raw frames of 0.52 MB, held-out
 answers' gaps of the frame pairs the robot took for queued read up to 111 ms (median 44), and frames
 went as JPEG on that ("raw frames take the link 89 ms each"), where the edge's arrival stamps
 showed that 16 of those 24 pairs had not queued at all (the second put after the first arrived)
-and the other 8 held a stall of the robot's sender, not the link (README: "The link timed on the
-edge's clock").
+and the other 8 held a stall of the robot's sender, not the link (docs/perception-log.md: "The
+link timed on the edge's clock").
 
 An edge that reads version 4 stamps each answer with the frame's arrival on its own clock, and
 differences of one edge's stamps are the link's own (and whatever held the frame between its put
