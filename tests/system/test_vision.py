@@ -160,7 +160,7 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
     250 ms after Zenoh let the put go, resumes when the edge answers again, and every frame is in
     one bucket. (``wait_before_close`` at the 2 s lease made it 2.35 s, but cost the held-out
     cellular scan runs 32 of 671 received scans and one run of three (2.28 m): not the default;
-    README, Perception offloading.) ``reply_timeout`` 5 s: the fallback comes from the edge's
+    docs/perception-log.md.) ``reply_timeout`` 5 s: the fallback comes from the edge's
     token, not from losses."""
     cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="edge", max_frames=400, reply_timeout=5.0,
                       probe_period=0.3, resume_after=2, encoding="bgr8",

@@ -470,7 +470,7 @@ class RobotSettings(_Strict):
         default=0.1, gt=0, le=0.5, description="q16 step as a fraction of the voxel size (raw scans: 5 mm)"
     )
     zstd_level: int = Field(default=1, ge=-7, le=22, description="q16d's Zstandard level")
-    # The rate policy when nothing in voxel_range fits the link (README "Ours", unseen links)
+    # The rate policy when nothing in voxel_range fits the link (docs/scan-policy-log.md, "Unseen links")
     voxel_widen: float = Field(
         default=2.0, ge=1.0,
         description="rate policy: widen voxel_range up to this times its end when nothing fits; 1 = never",

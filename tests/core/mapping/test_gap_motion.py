@@ -66,8 +66,8 @@ def _rotation_deg(d: np.ndarray) -> float:
 
 
 def test_a_turn_that_swung_back_during_a_gap_is_found() -> None:
-    """The simulator's sharpest turn as a run on ``wifi-locations`` met it (README, the defaults'
-    rows): yaw +5.4 degrees a scan up to scan 339, then swinging back at -4.2; scans 335-338 and
+    """The simulator's sharpest turn as a run on ``wifi-locations`` met it (docs/scan-policy-log.md,
+    the defaults' rows): yaw +5.4 degrees a scan up to scan 339, then swinging back at -4.2; scans 335-338 and
     340 lost, each scan at the voxel size the robot sent it. The constant-velocity guess for 341
     is 19 degrees past the robot and a few centimetres from the other guesses in translation, so
     with the guesses told apart by translation alone they were never tried and ICP settled 16
@@ -106,8 +106,8 @@ def test_guesses_are_apart_by_translation_and_by_rotation_at_max_range() -> None
 
 
 def test_a_turn_begun_during_a_gap_is_found_from_a_turned_guess() -> None:
-    """A rain fade on the satellite link over the same turn (README, the turned guesses): the robot
-    sent every third scan at 0.14 m from scan 259 on; between 340 and 343 it swung back 17
+    """A rain fade on the satellite link over the same turn (docs/scan-policy-log.md, turned
+    guesses): the robot sent every third scan at 0.14 m from scan 259 on; between 340 and 343 it swung back 17
     degrees. The guesses of the motions (kept, stopped, reversed) lay within KISS-ICP's reach of
     each other (sigma had grown to 1.6 m over the gaps), so the kept one alone was registered and
     ICP settled 20 degrees off; its result finds few of the scan's points in the map, so the
