@@ -4,11 +4,13 @@ checkpoint while its global map stays."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from zoffload.edge.recipe import MapperRecipe
-from zoffload.mapping.checkpoint import take_checkpoint
+from zoffload.mapping.checkpoint import config_matches, take_checkpoint
 from zoffload.mapping.mapper import RobotMapper, motion_per_scan
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
@@ -95,6 +97,28 @@ def test_the_robots_coarse_checkpoint_does_not_replace_a_finer_local_map() -> No
     for i in range(34):
         rr = ref.register(i, SCANS[i])
     assert np.linalg.norm(r.pose[:3, 3] - rr.pose[:3, 3]) < 0.1
+
+
+def test_the_robots_checkpoint_at_the_edges_own_voxel_does_not_replace_its_local_map() -> None:
+    """The robot's local odometry configured as the edge's mapper (``fleet.local_voxel`` at the
+    edge's voxel) made a checkpoint the edge's configuration matched, and the edge replaced its own
+    local map with the robot's, drifted over the outage (cellular-heldout: trajectory +68 % of
+    local's over the same scans). A checkpoint of the robot's own (edge "") is never seeded from by
+    a mapper that has mapped the robot; an edge's checkpoint still is."""
+    a = mapper()
+    for i in range(25):
+        a.register(i, SCANS[i])
+    local_map = np.asarray(a.odometry.local_map.point_cloud()).copy()
+    robot = mapper()  # the robot's odometry, configured as the edge's
+    for i in range(29):
+        robot.register(i, SCANS[i])
+    own = take_checkpoint(robot.odometry, "r1", "", epoch=0, seq=28, stamp=0.0)
+    assert config_matches(a.odometry, own)
+    assert not a.continue_from(own, np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # not seeded
+    np.testing.assert_array_equal(np.asarray(a.odometry.local_map.point_cloud()), local_map)
+    np.testing.assert_allclose(a.odometry.last_pose, own.pose)
+    other = dataclasses.replace(take_checkpoint(robot.odometry, "r1", "e2", 3, 28, 0.0), seq=30)
+    assert a.continue_from(other, np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # another edge's: seeded
 
 
 def test_a_mapper_continues_the_robots_motion_not_the_one_it_saw_before() -> None:
