@@ -40,25 +40,23 @@ larger. Without that, scans that do not fill the budget (sent as they are) let i
 
 **Choice.** The finest size of ``voxel_range`` whose predicted bytes fit the budget. When none
 fits, the policy first widens the range (up to ``widen`` times its upper end: the edge's KISS-ICP
-registers on a grid 1.5 times its voxel, which the edge sizes to at least twice the range's end,
-so the odometry keeps its keypoints and the map loses detail), then lowers the scan rate:
-a scan that needs ``s`` periods of the link is sent and the next ``s - 1`` are skipped (at most
-``max_skip`` in a row); the scan after a skip says so (``wire.Scan.skipped``) and the edge's
-motion model bridges the gap. Optionally (``jitter_pace`` > 1, off by default) the rate is also
-lowered for the link's jitter: arrivals that jitter by a good part of the period are late for a
-1-period slot whatever the scan's size, and a slot of ``jitter_pace`` periods at most absorbs them
-(chosen so that about ``jitter_late`` of the scans would be late, from the spread of T around
-the slots). Off by default: robot, edge and emulator share one machine in the experiments, and
-the edge's KISS-ICP on HDL-64 scans makes T jitter by 20 ms on the strong Wi-Fi link too, where
-pacing skipped a third of the scans for nothing (docs/scan-policy-log.md, "Ours"). While the link
-delivers nothing (no ack for ``stall_after`` seconds with scans in flight, the oldest of them past
-its expected answer) scans are skipped too: anything sent then would queue behind the stall and
-arrive stale;
-and likewise (``queue_stall``) while the newest ack's network time stands ``stall_after`` above
-the path's floor with scans queued behind it (a queue that deep stands on the link: a rain fade on
-a satellite path, where the window is 7 scans deep), at most ``queue_stall_max`` in a row (a path
-whose delay rose for good is not a queue: its floor follows in 10 s, and meanwhile one scan in
-five goes).
+registers on a grid 1.5 times its voxel, which the edge sizes to at least twice the range's end, so
+the odometry keeps its keypoints and the map loses detail), then lowers the scan rate: a scan that
+needs ``s`` periods of the link is sent and the next ``s - 1`` are skipped (at most ``max_skip`` in
+a row); the scan after a skip says so (``wire.Scan.skipped``) and the edge's motion model bridges
+the gap. Optionally (``jitter_pace`` > 1, off by default) the rate is also lowered for the link's
+jitter: arrivals that jitter by a good part of the period are late for a 1-period slot whatever the
+scan's size, and a slot of ``jitter_pace`` periods at most absorbs them (chosen so that about
+``jitter_late`` of the scans would be late, from the spread of T around the slots). Off by default:
+robot, edge and emulator share one machine in the experiments, and the edge's KISS-ICP on HDL-64
+scans makes T jitter by 20 ms on the strong Wi-Fi link too, where pacing skipped a third of the
+scans for nothing (docs/scan-policy-log.md, "Ours"). While the link delivers nothing (no ack for
+``stall_after`` seconds with scans in flight, the oldest of them past its expected answer) scans
+are skipped too: anything sent then would queue behind the stall and arrive stale; and likewise
+(``queue_stall``) while the newest ack's network time stands ``stall_after`` above the path's floor
+with scans queued behind it (a queue that deep stands on the link: a rain fade on a satellite path,
+where the window is 7 scans deep), at most ``queue_stall_max`` in a row (a path whose delay rose
+for good is not a queue: its floor follows in 10 s, and meanwhile one scan in five goes).
 
 **Counting.** A grid pass costs about as much as everything else the robot does per scan, so the
 policy does not search: it keeps a curve of point counts per candidate (measured on the first
@@ -285,9 +283,8 @@ class LinkAwareScale:
         dropped a quarter of the scans (docs/scan-policy-log.md, "Unseen links"). A long path
         without a queue fills the window too, but at the floor; within a second of a silence (no ack
         for ``stall_after``, or ``SILENT`` where that is 0; scans in flight or not) the last
-        second's deliveries are not
-        a rate. At most once per ``QUEUE_EVERY`` scans: the next second's rate is then the capped
-        stream's, not the link's."""
+        second's deliveries are not a rate. At most once per ``QUEUE_EVERY`` scans: the next
+        second's rate is then the capped stream's, not the link's."""
         floor = link.floor_net
         if (self._scans - self._stall_scan < QUEUE_EVERY or self._scans - self._capped_at < QUEUE_EVERY
                 or not math.isfinite(floor)):
