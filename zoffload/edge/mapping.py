@@ -422,16 +422,14 @@ class MappingService:
             # it took 36 ms per robot in the draining edge's worker, and the drains' moves took twice
             # as long (README, "Checkpoints")
             coded = entry is not None and entry.reads >= 6 and not final
-            turns = entry is not None and entry.reads >= 8  # the turn rate for a robot that reads 8
+            reads = entry.reads if entry is not None else 5
         # Counted as taken before it is: one that fails (a map too far out for its grid) is tried
         # again after checkpoint_every scans, not on every scan
         rs.checkpoint_epoch, rs.since_checkpoint = epoch, 0
         cp = mapper.checkpoint(rs.robot, self.edge_id, epoch, rs.last_stamp, resolution, final, coded)
         if cp is None:
             return False
-        if not turns and cp.turn_rate:
-            cp = dataclasses.replace(cp, turn_rate=0.0)
-        data = wire.encode(cp)
+        data = wire.encode(cp.readable_by(reads))  # (the turn rate for a robot that reads 8)
         try:
             if final:  # the one the robot must not miss: wait for room rather than drop it
                 self._session.put(self.keys.checkpoint(rs.robot, self.edge_id), data,

@@ -440,6 +440,12 @@ class Checkpoint(Message):
         except CodingError as exc:
             raise WireError(f"checkpoint: {exc}") from exc
 
+    def readable_by(self, reads: int, limits: Limits = DEFAULT_LIMITS) -> Checkpoint:
+        """The same checkpoint as a peer that reads codec version ``reads`` takes it: without the
+        turn rate below 8, with its local map as float32 points (``plain``) below 6."""
+        cp = self if reads >= 8 or not self.turn_rate else dataclasses.replace(self, turn_rate=0.0)
+        return cp if reads >= 6 else cp.plain(limits)
+
     def plain(self, limits: Limits = DEFAULT_LIMITS) -> Checkpoint:
         """The same checkpoint with its local map as float32 points (for a peer that reads
         version 5 or older); ``WireError`` if the coded map does not decode."""

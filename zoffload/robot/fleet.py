@@ -26,7 +26,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -321,10 +321,8 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
     it reads 6 (the edge then codes its checkpoints) and sends its checkpoint coded; to an older
     edge, a version-5 attach with the checkpoint's map as float32 points; the checkpoint's turn rate
     only to an edge that reads 8."""
-    if cp is not None and edge_reads < 8 and cp.turn_rate:
-        cp = replace(cp, turn_rate=0.0)
-    if cp is not None and edge_reads < 6:
-        cp = cp.plain()
+    if cp is not None:
+        cp = cp.readable_by(edge_reads)
     return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
                        rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
                        local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5)
