@@ -30,6 +30,13 @@ def valid_messages(robot: str = "robot1", edge: str = "edge1") -> dict[str, byte
     cp = wire.Checkpoint(robot=robot, edge=edge, epoch=1, seq=10, stamp=1.0, voxel_size=1.0, max_range=50.0,
                          min_range=0.0, max_points_per_voxel=20, pose=np.eye(4), delta=np.eye(4),
                          points=_PTS[:50])
+    coarse = [wire.encode(wire.Scan(robot=robot, seq=seq, send_stamp=1.0, capture_stamp=2.0, voxel=0.8,
+                                    voxel_max=0.8, max_range=50.0, n_raw=500,
+                                    points=np.zeros((0, 3), np.float32),
+                                    coding="q16z", quant_step=step, n_points=len(_PTS), origin=origin,
+                                    packed=np.frombuffer(blob, np.uint8), epoch=2)) for seq in (11, 12)]
+    backfill = b"".join(coarse)
+    assert len(coarse[0]) == len(coarse[1])
     msgs: dict[str, wire.Message] = {
         "scan_f32": wire.Scan(robot=robot, seq=3, send_stamp=1.0, capture_stamp=2.0, voxel=0.05,
                               voxel_max=0.07, max_range=50.0, n_raw=500, points=_PTS, time_span=span,
@@ -75,6 +82,12 @@ def valid_messages(robot: str = "robot1", edge: str = "edge1") -> dict[str, byte
         "attach": wire.Attach(robot=robot, epoch=2, max_range=50.0, voxel_max=0.07, rate_hz=10.0,
                               checkpoint=wire.encode(cp), local_seqs=np.array([11, 12]),
                               local_poses=np.stack([np.eye(4)] * 2)),
+        # Version 9: the attach's backfill, two coded scans (robot/fleet.py ``backfill_payload``)
+        "attach_v9": wire.Attach(robot=robot, epoch=2, max_range=50.0, voxel_max=0.07, rate_hz=10.0,
+                                 checkpoint=wire.encode(cp), local_seqs=np.array([11, 12]),
+                                 local_poses=np.stack([np.eye(4)] * 2), reads=9,
+                                 backfill=np.frombuffer(backfill, np.uint8),
+                                 backfill_sizes=np.array([len(backfill) // 2] * 2, np.int64)),
         "attach_reply": wire.AttachReply(robot=robot, edge=edge, epoch=2, accepted=True, robots=1,
                                          capacity=4),
     }

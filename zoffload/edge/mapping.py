@@ -373,6 +373,12 @@ class MappingService:
                                                 "in the key")
             return
         checkpoint, detail = check_attach(attach, robot, self.limits)
+        backfill: tuple[wire.Scan, ...] = ()
+        if not detail and attach.backfill_sizes is not None:
+            try:  # (their points are decoded by the worker that applies the attach)
+                backfill = tuple(attach.backfill_scans(self.limits))
+            except wire.WireError as exc:  # the attach stands without it
+                self.attach_drops.drop("malformed", f"attach of {robot}: backfill: {exc}")
         now = time.monotonic()
         with self._lock:
             rs = self.robots.get(robot)
@@ -382,7 +388,7 @@ class MappingService:
             if not detail:
                 self.fleet.attach(robot, attach.epoch, now, attach.reads)
                 rs = rs or self._new_robot(robot)
-                rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses)
+                rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses, backfill)
                 rs.final_pending = False
             self.counters["attach_refused" if detail else "attaches"] += 1
             robots, capacity = len(self.robots), self.fleet.effective_capacity(now)
@@ -403,9 +409,25 @@ class MappingService:
         if pending is None or rs.mapper is None or not hasattr(rs.mapper, "continue_from"):
             return
         mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
-        if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses):
+        backfill: list[tuple[int, np.ndarray]] = []
+        for scan in pending.backfill:
+            try:
+                backfill.append((scan.seq, scan.cloud_and_times(self.limits)[0]))
+            except wire.WireError as exc:  # registered up to the scan that does not decode
+                self._count(rs, "backfill_malformed", len(pending.backfill) - len(backfill))
+                log.warning("robot %s: backfill scan %d does not decode: %s", rs.robot, scan.seq,
+                            str(exc)[:200])
+                break
+        before = getattr(mapper, "backfilled", 0), getattr(mapper, "backfill_unused", 0)
+        if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses, backfill):
             log.info("robot %s continues from its checkpoint of scan %d", rs.robot,
                      pending.checkpoint.seq if pending.checkpoint else -1)
+        if backfill:
+            done = getattr(mapper, "backfilled", 0) - before[0]
+            self._count(rs, "backfilled", done)
+            self._count(rs, "backfill_unused", getattr(mapper, "backfill_unused", 0) - before[1])
+            log.info("robot %s: %d of its %d backfilled scans (%d..%d) registered", rs.robot, done,
+                     len(backfill), backfill[0][0], backfill[-1][0])
 
     def _send_checkpoint(self, rs: RobotSession, epoch: int, final: bool = False) -> bool:
         """Take and publish the robot's checkpoint (the worker holding the robot)."""
@@ -514,10 +536,10 @@ class MappingService:
         for robot in gone:
             self.evict(robot)
 
-    def _count(self, rs: RobotSession, what: str) -> None:
+    def _count(self, rs: RobotSession, what: str, n: int = 1) -> None:
         with self._lock:
-            rs.counters[what] += 1
-            self.counters[what] += 1
+            rs.counters[what] += n
+            self.counters[what] += n
 
     def _ack(self, rs: RobotSession, item: Queued, status: str, detail: str = "",
              queue_time: float = float("nan"), reg: Registration | None = None) -> None:

@@ -27,7 +27,7 @@ pose, motion; mapping/checkpoint.py) and continues a robot's trajectory from one
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -73,13 +73,26 @@ class BoundedMapper:
     def scans(self) -> int:
         return self.inner.registered
 
-    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
+    @property
+    def backfilled(self) -> int:
+        return self.inner.backfilled
+
+    @property
+    def backfill_unused(self) -> int:
+        return self.inner.backfill_unused
+
+    def _near(self, points: np.ndarray, times: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray | None]:
         if len(points) and max(float(points.max()), -float(points.min())) > self.max_range:
             near = np.einsum("ij,ij->i", points, points) <= self.max_range**2
             points = points[near]
             times = times[near] if times is not None and len(times) == len(near) else times
-            if len(points) == 0:
-                raise ValueError(f"no point within the mapper's range of {self.max_range:g} m")
+        return points, times
+
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
+        points, times = self._near(points, times)
+        if len(points) == 0:
+            raise ValueError(f"no point within the mapper's range of {self.max_range:g} m")
         # Per-point times only when there are some: the mapper deskews with them if made to
         reg = self.inner.register(seq, points) if times is None else self.inner.register(seq, points, times)
         self._trim()
@@ -101,8 +114,10 @@ class BoundedMapper:
         return self.inner.map_cloud()
 
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
-                      local_poses: np.ndarray) -> bool:
-        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses)
+                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = ()) -> bool:
+        near = [(seq, self._near(points)[0]) for seq, points in backfill]
+        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses,
+                                          [(seq, points) for seq, points in near if len(points)])
         self._trim()
         return seeded
 

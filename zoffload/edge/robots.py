@@ -9,6 +9,7 @@ or by the one worker holding the robot (edge/mapping.py).
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -42,7 +43,7 @@ class FleetMapper(Mapper, Protocol):
     a stand-in without these methods maps attached robots without checkpoints."""
 
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
-                      local_poses: np.ndarray) -> bool: ...
+                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = ()) -> bool: ...
 
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False, coded: bool = True) -> wire.Checkpoint | None: ...
@@ -72,6 +73,7 @@ class Continue:
     checkpoint: wire.Checkpoint | None
     local_seqs: np.ndarray
     local_poses: np.ndarray
+    backfill: tuple[wire.Scan, ...] = ()  # the scans the robot registered itself (version 9)
 
 
 PERIOD_SCANS = 15  # inter-arrivals the robot's scan period is the median of

@@ -14,6 +14,13 @@ an attach's local poses make the edge do), taken from ``robot_poses.npz`` relati
 record of the edge's pose before the outage (the replay's frame drifts from the run's). With
 ``--edge-bridges`` the mapper bridges those gaps itself instead (constant velocity and the gap
 guesses), which separates what the robot's odometry handed over from what the scans carried.
+A run whose robot kept a backfill (``fleet.backfill_scans`` in its settings, codec version 9)
+handed its edge the scans it registered itself in each outage at a coarse grid with the attach
+after it: the replay registers the newest ``backfill_scans`` of each stretch of such scans that
+includes scans kept ``local`` (the robot was detached, so an attach followed) at that grid
+(``fleet.backfill_voxel``, else the local odometry's voxel), as the edge did, or, where the
+robot's records mark them (``backfill``), exactly those. ``--no-backfill`` replays the run as a
+robot without it would have gone.
 Per-point times (deskew) are left out.
 """
 
@@ -36,6 +43,7 @@ from zoffload.mapping.mapper import MOTION_SPAN, motion_per_scan
 from zoffload.mapping.se3 import as_rigid
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol.coding import DECODERS, decode_q16d, encode_q16d, quant_step
+from zoffload.robot.odometry import local_voxel_size
 from zoffload.sources.base import open_scan_source
 
 
@@ -72,10 +80,36 @@ def _as_sent(points: np.ndarray, voxel: float, coding: str, fraction: float) -> 
     return decode_q16d(packed, len(cloud), origin, step)[0]
 
 
-def remap(folder: Path, edge_bridges: bool = False) -> dict[str, Any]:
+def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float
+              ) -> dict[int, tuple[int, float, str]]:
+    """The scans a backfill handed over (module docstring): seq -> (index, voxel, coding)."""
+    fleet = cfg.get("fleet") or {}
+    keep = int(fleet.get("backfill_scans") or 0)
+    if keep <= 0 or not fleet.get("attach", True):
+        return {}
+    voxel = float(fleet.get("backfill_voxel")
+                  or min(local_voxel_size(max_range, fleet.get("local_voxel")), 10.0))
+    if rows and "backfill" in rows[0]:  # the robot marked the scans an edge took in a backfill
+        return {int(r["seq"]): (int(r["index"]), voxel, "q16d") for r in rows
+                if r.get("backfill") == "1" and r.get("status") != "acked"}
+    stretches: list[list[dict[str, str]]] = []
+    for r in sorted(rows, key=lambda r: int(r["seq"])):
+        if r.get("pose_source") == "local" and r.get("status") != "acked":
+            if stretches and int(stretches[-1][-1]["seq"]) == int(r["seq"]) - 1:
+                stretches[-1].append(r)
+            else:
+                stretches.append([r])
+    # a stretch handed over with an attach: one the robot spent detached (status local), not a bridge
+    # its edge answered again (the ring is forgotten then)
+    attached_after = [st for st in stretches if any(r.get("status") == "local" for r in st)]
+    return {int(r["seq"]): (int(r["index"]), voxel, "q16d") for st in attached_after for r in st[-keep:]}
+
+
+def remap(folder: Path, edge_bridges: bool = False, backfill: bool = True) -> dict[str, Any]:
     """The run in ``folder`` registered again (module docstring): its trajectory error then, and
     the one the run recorded (``results.json``) beside it. ``edge_bridges``: the mapper bridges
-    the outages the robot bridged in the run itself, from its own motion."""
+    the outages the robot bridged in the run itself, from its own motion; ``backfill``: the
+    mapper registers a backfill where the run's robot kept one."""
     cfg = _settings(folder)
     scans_csv = folder / "robot_scans.csv"
     if not scans_csv.exists():
@@ -92,6 +126,8 @@ def remap(folder: Path, edge_bridges: bool = False) -> dict[str, Any]:
     voxel_max = float((cfg.get("voxel_range") or [0.0, cfg.get("voxel") or 0.0])[1])
     fraction = float(cfg.get("quant_fraction") or 0.1)
     mapper = MapperRecipe().mapper(source.max_range, voxel_max)  # the edge's defaults
+    filled = _backfill(rows, cfg, source.max_range) if backfill and not edge_bridges else {}
+    sent.update(filled)
     truth: dict[int, np.ndarray] = {}
     kept: dict[str, int] = {}
     handovers, last = 0, None
@@ -125,7 +161,8 @@ def remap(folder: Path, edge_bridges: bool = False) -> dict[str, Any]:
     return {"run": str(folder), "scans": len(sent), "reference": reference,
             "ate_rmse": None if err is None else err.ate_rmse, "recorded_ate_rmse": recorded,
             "after_gap": mapper.after_gap, "guessed": mapper.guessed, "gap_guesses_kept": kept,
-            "handovers": handovers, "bridged_by": "edge" if edge_bridges or not local else "robot"}
+            "handovers": handovers, "bridged_by": "edge" if edge_bridges or not local else "robot",
+            "backfilled": len(filled)}
 
 
 def _hand_over(mapper: Any, robot: dict[int, np.ndarray], local: set[int], last: int, seq: int) -> bool:
@@ -153,11 +190,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a line")
     p.add_argument("--edge-bridges", action="store_true",
                    help="the mapper bridges the outages the robot bridged in the run itself (no handover)")
+    p.add_argument("--no-backfill", action="store_true",
+                   help="leave out the backfill the run's robot handed over (as a robot without one)")
     a = p.parse_args(argv)
     failed = 0
     for folder in a.runs:
         try:
-            out = remap(folder, a.edge_bridges)
+            out = remap(folder, a.edge_bridges, not a.no_backfill)
         except (ValueError, OSError) as exc:
             print(f"{folder}: {exc}", file=sys.stderr)
             failed += 1
@@ -173,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{m(out['recorded_ate_rmse'])}; reference: {out['reference']}; {out['after_gap']} scans "
               f"after a gap, {out['guessed']} of them from several guesses, kept "
               f"{out['gap_guesses_kept'] or 'none'}; outages bridged by the {out['bridged_by']}, "
-              f"{out['handovers']} handed over)")
+              f"{out['handovers']} handed over, {out['backfilled']} scans backfilled)")
     return 1 if failed else 0
 
 

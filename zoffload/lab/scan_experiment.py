@@ -116,9 +116,12 @@ def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], pe
                   produced: int) -> dict[str, Any]:
     """Skipped scans and timeliness per slot: a scan sent after k deliberately skipped ones was
     meant to arrive (k + 1) periods after the previous one. ``delivered_skipped_or_local`` also
-    counts the scans an outage kept local (``kept_local``)."""
+    counts the scans an outage kept local (``kept_local``), ``delivered_skipped_or_backfilled``
+    those an edge took in an attach's backfill (``backfill`` in the robot's records)."""
     skipped = sum(r.get("status") in DELIBERATE for r in recs)
     local = kept_local(recs)
+    counted = {r.get("seq") for r in received} | {r.get("seq") for r in recs if r.get("status") in DELIBERATE}
+    backfilled = sum(str(r.get("backfill") or "") == "1" and r.get("seq") not in counted for r in recs)
     on_time = [float(r["interarrival"]) <= SLOT_SLACK * period * (1 + int(float(r.get("skipped") or 0)))
                for r in received if r.get("interarrival") not in (None, "")
                and np.isfinite(float(r["interarrival"]))]
@@ -128,6 +131,9 @@ def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], pe
         "delivered_or_skipped": (len(received) + skipped) / produced if produced else None,
         "scans_kept_local": local,
         "delivered_skipped_or_local": (len(received) + skipped + local) / produced if produced else None,
+        # ... or handed to the edge later in an attach's backfill (robot/odometry.py), each scan once
+        "delivered_skipped_or_backfilled": ((len(received) + skipped + backfilled) / produced if produced
+                                            else None),
         "on_time_slot": float(np.mean(on_time)) if on_time else None,
     }
 
@@ -287,7 +293,19 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
                      metrics.get("cpu"))
     row["cut_short"] = run.cut_short
     row["link_seed"] = link_seed
+    if exp.attach:  # the outage scans the robot handed its edge with an attach, registered there
+        row.update(_backfilled(out / f"{robot.robot_id}_edge.json"))
     return row
+
+
+def _backfilled(path: Path) -> dict[str, Any]:
+    """``scans_backfilled``: the edge's counter of the outage scans it registered from an attach's
+    backfill (late: robot/odometry.py). Some were also booked skipped (a stall) or lost on the
+    way, so it is not added to "delivered or skipped"."""
+    try:
+        return {"scans_backfilled": int(json.loads(path.read_text()).get("backfilled", 0))}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
 
 
 def summary_line(row: dict[str, Any]) -> str:

@@ -55,7 +55,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5, 6, 7, 8)
+READS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -80,6 +80,7 @@ class Limits:
     # ~0.05-0.2M); a declared count is also at most CODED_POINTS_PER_BYTE a byte of its payload,
     # so a kilobyte of compressed zeros cannot make a receiver allocate gigabytes
     max_checkpoint_points: int = 2_000_000
+    max_backfill_scans: int = 64  # scans an attach's backfill may carry (the robot sends at most 50)
     max_status_values: int = 1024  # entries of a status message
     max_bytes: int = 512 * 1024 * 1024  # one encoded message
 
@@ -473,10 +474,57 @@ class Attach(Message):
     # Version 6: the newest codec version the robot reads (5: not said); 6 or more, the edge may
     # send it coded checkpoints
     reads: int = _num(5, lo=1, hi=1_000, since=6)
+    # Version 9: the backfill, scans the robot registered itself while no edge mapped it (an
+    # outage), each an encoded ``Scan`` at a coarse grid, concatenated, and their sizes in bytes:
+    # a mapper that mapped the robot before registers them in order (mapping/mapper.py
+    # ``continue_from``) instead of jumping the outage to the robot's pose
+    backfill: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True, since=9)
+    backfill_sizes: np.ndarray | None = _array(ArraySpec("<i8", (-1,), cap="max_backfill_scans"),
+                                               optional=True, since=9)
 
     def __post_init__(self) -> None:
         if len(self.local_seqs) != len(self.local_poses):
             raise WireError(f"attach: {len(self.local_seqs)} seqs for {len(self.local_poses)} poses")
+        if (self.backfill is None) != (self.backfill_sizes is None):
+            raise WireError("attach: a backfill needs both its bytes and its sizes")
+        if self.backfill is not None and self.backfill_sizes is not None:
+            sizes = self.backfill_sizes.tolist()  # Python ints: a sum of int64s may wrap
+            if sizes and (min(sizes) < 1 or sum(sizes) != len(self.backfill)):
+                raise WireError(f"attach: backfill sizes summing to {sum(sizes)} for "
+                                f"{len(self.backfill)} bytes (each at least 1)")
+            if not len(sizes) and len(self.backfill):
+                raise WireError(f"attach: {len(self.backfill)} backfill bytes without sizes")
+
+    def backfill_scans(self, limits: Limits = DEFAULT_LIMITS) -> list[Scan]:
+        """The backfill's scans, decoded and checked as any scan (``WireError`` if one is not a
+        valid scan of this robot, their seqs do not ascend, a coded one declares more than
+        ``CODED_POINTS_PER_BYTE`` points a byte, or together they declare more than one scan's
+        ``max_points``: a receiver decodes their points before registering them)."""
+        if self.backfill is None or self.backfill_sizes is None:
+            return []
+        if len(self.backfill_sizes) > limits.max_backfill_scans:
+            raise WireError(f"backfill of {len(self.backfill_sizes)} scans "
+                            f"(at most {limits.max_backfill_scans})")
+        data = memoryview(self.backfill.data)
+        out: list[Scan] = []
+        at = total = 0
+        for size in self.backfill_sizes.tolist():
+            scan = decode(data[at:at + size], expect=Scan, limits=limits)
+            at += size
+            if scan.robot != self.robot:
+                raise WireError(f"backfill scan of robot {scan.robot!r} in {self.robot!r}'s attach")
+            if out and scan.seq <= out[-1].seq:
+                raise WireError(f"backfill seqs do not ascend ({out[-1].seq}, then {scan.seq})")
+            coded = scan.coding != "f32"
+            declared = scan.n_points if coded else len(scan.points)
+            nbytes = len(scan.packed) if scan.packed is not None else 0
+            if coded and declared > CODED_POINTS_PER_BYTE * max(nbytes, 1):
+                raise WireError(f"backfill scan {scan.seq}: {declared} points in {nbytes} bytes")
+            total += max(declared, 0)
+            if total > limits.max_points:
+                raise WireError(f"backfill of more than {limits.max_points} points")
+            out.append(scan)
+        return out
 
 
 @dataclass(frozen=True)

@@ -234,7 +234,7 @@ class PoseKeeper:
             merged.update(self._newest_poses(-1, HANDOVER_POSES))
         seqs = sorted(merged)
         return Snapshot(snap.checkpoint, np.array(seqs, np.int64),
-                        np.array([merged[s] for s in seqs], np.float64).reshape(-1, 4, 4))
+                        np.array([merged[s] for s in seqs], np.float64).reshape(-1, 4, 4), snap.backfill)
 
     def _newest_poses(self, after: int, n: int = 2) -> list[tuple[int, np.ndarray]]:
         """The newest ``n`` poses the robot has for scans after ``after``, ascending: the edge's

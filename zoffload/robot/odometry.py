@@ -24,6 +24,7 @@ import numpy as np
 from zoffload.mapping.checkpoint import seed, take_checkpoint
 from zoffload.mapping.mapper import load_kiss_icp, motion_per_scan
 from zoffload.mapping.se3 import as_rigid, se3_power
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.robot.scanlog import Histogram
 
@@ -45,20 +46,38 @@ class Held:
 
 
 @dataclass(frozen=True)
+class Backfilled:
+    """A scan the local odometry registered, kept at a coarse grid for the next attach (its
+    backfill: the edge that mapped the robot registers it, mapping/mapper.py ``continue_from``)."""
+
+    seq: int
+    stamp: float  # capture stamp (robot wall clock)
+    n_raw: int  # points before the grid
+    points: np.ndarray  # float32 (m, 3): the centroids of the ``voxel`` grid
+    voxel: float
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """What the next attach draws on: the local checkpoint and the poses of this period."""
 
     checkpoint: wire.Checkpoint | None
     seqs: np.ndarray  # int64 (n,)
     poses: np.ndarray  # float64 (n, 4, 4)
+    backfill: tuple[Backfilled, ...] = ()  # the period's newest scans at a coarse grid, ascending
 
 
 class LocalOdometry:
     def __init__(self, robot: str, max_range: float, voxel: float | None = None, threads: int = 1,
-                 catch_up: int = 10, checkpoint_every: int = 10) -> None:
+                 catch_up: int = 10, checkpoint_every: int = 10, backfill_scans: int = 0,
+                 backfill_voxel: float | None = None) -> None:
         self.robot = robot
         self.max_range = max_range
         self.voxel = local_voxel_size(max_range, voxel)
+        # The period's newest registered scans at a coarse grid (the next attach's backfill)
+        # (a scan's voxel is at most 10 m)
+        self.backfill_voxel = backfill_voxel if backfill_voxel is not None else min(self.voxel, 10.0)
+        self._backfill: deque[Backfilled] = deque(maxlen=max(0, backfill_scans))
         self.threads = threads
         self.checkpoint_every = max(1, checkpoint_every)
         self.ring: deque[Held] = deque(maxlen=max(0, catch_up))
@@ -122,6 +141,7 @@ class LocalOdometry:
         with self._lock:
             self._odometry = None
             self._poses.clear()
+            self._backfill.clear()
         self.ring.clear()
 
     def catch_up(self, before: int, posed: set[int]) -> list[tuple[int, np.ndarray, float]]:
@@ -145,6 +165,7 @@ class LocalOdometry:
             raise RuntimeError("local odometry registers only between begin() and end()")
         frame = np.asarray(points, np.float64).reshape(-1, 3)
         frame = frame[np.isfinite(frame).all(axis=1)]
+        coarse = self._coarse(frame) if self._backfill.maxlen and len(frame) else None
         gap = seq - self._last_seq if self._last_seq is not None else 1
         stretch = 1 < gap <= MAX_GAP
         with self._lock:
@@ -157,6 +178,8 @@ class LocalOdometry:
             self.motion = np.array(odo.last_delta, np.float64)  # type: ignore[attr-defined]
             self._last_seq = seq
             self._poses.append((seq, pose))
+            if coarse is not None and len(coarse):
+                self._backfill.append(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel))
             self._since_checkpoint += 1
             # A period's first registration takes one at once (the previous one is of another period)
             if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:
@@ -168,15 +191,23 @@ class LocalOdometry:
         self.cpu.add(cpu)
         return pose, cpu
 
+    def _coarse(self, frame: np.ndarray) -> np.ndarray | None:
+        """The scan at the backfill's grid; None (not kept) for points the grid cannot hold."""
+        try:
+            return voxel_downsample(frame, self.backfill_voxel).astype(np.float32)
+        except ValueError:  # coordinates too far from the origin for the grid's keys
+            return None
+
     def snapshot(self) -> Snapshot:
         """The newest local checkpoint and this period's poses (fleet thread; the attach sends
         those after the checkpoint it chooses)."""
         with self._lock:
             c = self._checkpoint
             after = list(self._poses)
+            backfill = tuple(self._backfill)
         seqs = np.array([s for s, _ in after], np.int64)
         poses = np.array([p for _, p in after], np.float64).reshape(-1, 4, 4)
-        return Snapshot(c, seqs, poses)
+        return Snapshot(c, seqs, poses, backfill)
 
     def cpu_summary(self) -> dict[str, float | None]:
         return {"median": self.cpu.quantile(0.5), "mean": self.cpu.mean()}

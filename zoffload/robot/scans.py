@@ -91,6 +91,9 @@ class StreamOptions:
     local_voxel: float | None = None
     local_threads: int = 1
     catch_up: int = 10
+    backfill_scans: int = 50  # scans kept at a coarse grid for the next attach (robot/odometry.py)
+    backfill_voxel: float | None = None  # None: the local odometry's voxel
+    backfill_bytes: int = 131_072
     bridge_after: float | None = None  # None: automatic (robot/localpose.py)
 
 
@@ -138,7 +141,9 @@ class ScanStreamer:
         self.fleet_state = (FleetState(o.robot_id, o.failover_after, status_wait=STATUS_WAIT)
                             if o.attach else None)
         self.odometry = (LocalOdometry(o.robot_id, source.max_range, o.local_voxel, o.local_threads,
-                                       o.catch_up) if o.attach and o.local_odometry else None)
+                                       o.catch_up, backfill_scans=o.backfill_scans,
+                                       backfill_voxel=o.backfill_voxel)
+                         if o.attach and o.local_odometry else None)
         self.poses = (PoseKeeper(self.odometry, self.fleet_state, self.ledger, self._lock, 1.0 / o.rate_hz,
                                  o.failover_after, o.bridge_after, alive=self._edge_alive)
                       if self.fleet_state is not None else None)
@@ -167,10 +172,20 @@ class ScanStreamer:
             assert self.poses is not None
             self.fleet = FleetLink(self.keys, self.fleet_state,
                                    Sensor(self.source.max_range, self.opts.voxel_range[1], self.opts.rate_hz),
-                                   self.opts.attach_timeout, self.poses.handover)
+                                   self.opts.attach_timeout, self.poses.handover, self.opts.backfill_bytes,
+                                   self._backfilled)
             self.fleet.start(session, presence)
         log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
                  self.policy.name, self.opts.coding)
+
+    def _backfilled(self, seqs: list[int]) -> None:
+        """Scans an edge took in an attach's backfill (the fleet thread): marked in their records
+        (``backfill``), their bucket unchanged."""
+        with self._lock:
+            for seq in seqs:
+                rec = self.ledger.records.get(seq)
+                if rec is not None:
+                    rec["backfill"] = 1
 
     def close(self) -> None:
         if self.fleet is not None:
@@ -662,5 +677,6 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         out_dir=Path(settings.out_dir) if settings.out_dir else None,
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
         local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,
-        catch_up=f.catch_up, bridge_after=f.bridge_after)
+        catch_up=f.catch_up, backfill_scans=f.backfill_scans, backfill_voxel=f.backfill_voxel,
+        backfill_bytes=f.backfill_bytes, bridge_after=f.bridge_after)
     return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

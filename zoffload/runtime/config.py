@@ -413,6 +413,21 @@ class RobotFleetSettings(_Strict):
         default=10, ge=0,
         description="recent scans kept so the local odometry can register the ones its edge never answered",
     )
+    backfill_scans: int = Field(
+        default=50, ge=0, le=64,
+        description="scans the robot registered itself while no edge mapped it that it keeps, at a coarse "
+                    "grid, for the next attach to hand over (the newest; 0: none): the edge that mapped it "
+                    "registers them instead of jumping the outage (codec version 9)",
+    )
+    backfill_voxel: float | None = Field(
+        default=None, gt=0, le=10,
+        description="the grid of those scans, in m (default: the local odometry's voxel, at most 10)",
+    )
+    backfill_bytes: int = Field(
+        default=131_072, ge=0,
+        description="bytes of backfill an attach carries at most (coded scans; thinned evenly beyond; "
+                    "an attach that goes unanswered with one is sent again without it)",
+    )
     bridge_after: float | None = Field(
         default=None, gt=0,
         description="seconds an edge may be late with its acks before the robot also registers its "

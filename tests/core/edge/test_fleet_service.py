@@ -358,3 +358,59 @@ def test_a_robot_that_reads_6_gets_coded_checkpoints_and_a_corrupt_one_is_refuse
         reply = attach(s, "r3", 1, checkpoint=wire.encode(broken), reads=6)
         assert not reply.accepted and reply.detail.startswith("bad checkpoint: "), reply.detail
         assert "r3" not in service.robots
+
+
+def test_a_reattach_with_a_backfill_registers_the_outage_scans(free_port: int) -> None:
+    """Version 9: a robot back after an outage sends the scans it registered itself at a coarse
+    grid with its attach; its edge registers them before its next scan, which then comes with no
+    gap. A backfill scan that does not decode is counted and the ones before it stand; a backfill
+    that is not well formed is a malformed drop, and the attach stands without it."""
+    from zoffload.robot.fleet import Sensor, backfill_payload
+    from zoffload.robot.odometry import Backfilled
+
+    sensor = Sensor(SRC.max_range, 0.07, 10.0)
+
+    def fill(robot: str, seqs: range) -> tuple[np.ndarray, np.ndarray]:
+        coarse = [Backfilled(i, 100.0 + i, 0, voxel_downsample(SRC.read(i).points, 0.8).astype(np.float32),
+                             0.8) for i in seqs]
+        data, sizes = backfill_payload(robot, 2, sensor, coarse, 10**7)
+        assert data is not None and sizes is not None
+        return data, sizes
+
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=3))
+    with serving(service, free_port), client(free_port) as s:
+        wait_token(s, KEYS.edge_alive("e1"))
+        for robot in ("r1", "r2", "r3"):
+            acks = Inbox(s, KEYS.scan_acks(robot), wire.ScanAck)
+            assert attach(s, robot, 1).accepted
+            pub = s.declare_publisher(KEYS.scan(robot))
+            for n, seq in enumerate(range(12), 1):
+                pub.put(scan(robot, seq, epoch=1, edge="e1"))
+                acks.wait(n)
+            data, sizes = fill(robot, range(12, 30))
+            if robot == "r2":  # the 6th scan's payload cut short: it does not decode
+                a, b = int(sizes[:5].sum()), int(sizes[:6].sum())
+                bad = wire.decode(bytes(data[a:b]), expect=wire.Scan)
+                assert bad.packed is not None
+                one = wire.encode(dataclasses.replace(bad, packed=bad.packed[:-40]))
+                data = np.frombuffer(bytes(data[:a]) + one + bytes(data[b:]), np.uint8)
+                sizes = np.concatenate([sizes[:5], [len(one)], sizes[6:]])
+            if robot == "r3":  # not well formed: sizes that do not cut it into whole scans
+                sizes = np.concatenate([sizes[:-2], [int(sizes[-2]) - 1, int(sizes[-1]) + 1]])
+            msg = wire.Attach(robot=robot, epoch=2, max_range=SRC.max_range, voxel_max=0.07, rate_hz=10.0,
+                              local_seqs=np.zeros(0, np.int64), local_poses=np.zeros((0, 4, 4)), reads=9,
+                              backfill=data, backfill_sizes=sizes.astype(np.int64))
+            replies = list(s.get(KEYS.attach(robot, "e1"), payload=wire.encode(msg), timeout=5))
+            assert wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.AttachReply).accepted
+            pub.put(scan(robot, 30, epoch=2, edge="e1"))
+            acks.wait(13)
+            assert acks.items[-1].status == "ok" and acks.items[-1].seq == 30
+        got = {r: service.robots[r] for r in ("r1", "r2", "r3")}
+        seqs = {r: got[r].mapper.trajectory()[0].tolist() for r in got}
+        assert got["r1"].counters["backfilled"] == 18 and seqs["r1"] == list(range(31))
+        assert got["r1"].mapper.inner.after_gap == 0  # scan 30 came with no gap
+        assert got["r2"].counters["backfilled"] == 5 and got["r2"].counters["backfill_malformed"] == 13
+        assert seqs["r2"] == [*range(17), 30]
+        assert got["r3"].counters["backfilled"] == 0 and seqs["r3"] == [*range(12), 30]
+        assert service.attach_drops.snapshot().get("malformed", 0) == 1
+        assert service.status()["backfilled"] == 23 and balanced(service)

@@ -17,10 +17,13 @@ from zoffload.sources.simulated import SimulatedSource
 pytest.importorskip("kiss_icp")
 
 
-def _run(folder: Path, rows: list[dict[str, object]], recorded: float = 0.1) -> Path:
+def _run(folder: Path, rows: list[dict[str, object]], recorded: float = 0.1,
+         fleet: dict[str, object] | None = None) -> Path:
     folder.mkdir()
-    (folder / "robot_config.yaml").write_text(yaml.safe_dump({"scans": "sim", "voxel_range": [0.01, 0.07],
-                                                              "replay": "once", "sim_seed": 0}))
+    cfg: dict[str, object] = {"scans": "sim", "voxel_range": [0.01, 0.07], "replay": "once", "sim_seed": 0}
+    if fleet is not None:
+        cfg["fleet"] = fleet
+    (folder / "robot_config.yaml").write_text(yaml.safe_dump(cfg))
     with open(folder / "robot_scans.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["seq", "index", "voxel", "coding", "status", "pose_source"])
         w.writeheader()
@@ -80,3 +83,32 @@ def test_an_outage_the_robot_bridged_is_handed_over_from_its_own_poses(
     assert results["off"]["ate_rmse"] > results["right"]["ate_rmse"] + 0.3, results
     alone = remap(tmp_path / "off", edge_bridges=True)
     assert alone["handovers"] == 0 and alone["bridged_by"] == "edge" and alone["ate_rmse"] < 0.5, alone
+
+
+def test_a_backfill_the_robot_kept_is_registered_as_its_edge_did(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``fleet.backfill_scans`` in the run's settings the replay registers the newest of the
+    outage's scans at the backfill's grid (here 5 of 8, at the local odometry's 0.8 m), and hands
+    over only the gap before them; the robot's own pose of the last, turned 20 degrees, no longer
+    matters (the mapper's spare guesses left out, as above). ``backfill=False`` replays it as a
+    robot without a backfill."""
+    monkeypatch.setattr(mapper, "GAP_LOST", 0.0)
+    src = SimulatedSource()
+    rows: list[dict[str, object]] = []
+    for i in range(45):
+        out = 20 <= i < 28
+        rows.append({"seq": i, "index": i, "voxel": "" if out else 0.05, "coding": "" if out else "q16d",
+                     "status": "local" if out else "acked", "pose_source": "local" if out else "edge"})
+    truth = [src.read(i).gt_pose for i in range(45)]
+    own = np.array([np.linalg.inv(truth[0]) @ t for t in truth])
+    c, s = np.cos(np.radians(20)), np.sin(np.radians(20))
+    own[27, :3, :3] = own[27, :3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    folder = _run(tmp_path / "filled", rows, fleet={"attach": True, "backfill_scans": 5})
+    np.savez(folder / "robot_poses.npz", acked_seqs=np.arange(45), acked_poses=own,
+             gt_seqs=np.arange(45), gt_poses=np.array(truth))
+    filled = remap(folder)
+    assert filled["backfilled"] == 5 and filled["scans"] == 37 + 5 and filled["handovers"] == 1, filled
+    assert filled["ate_rmse"] < 0.2, filled
+    jumped = remap(folder, backfill=False)
+    assert jumped["backfilled"] == 0 and jumped["scans"] == 37
+    assert jumped["ate_rmse"] > filled["ate_rmse"] + 0.2, (filled, jumped)

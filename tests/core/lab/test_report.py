@@ -81,7 +81,26 @@ def test_scans_an_outage_kept_local_are_counted_beside_the_delivered_and_skipped
     assert run["scans_kept_local"] == 3 and run["delivered_skipped_or_local"] == pytest.approx(0.8)
     r = dict(row("rate", 100_000), delivered_or_skipped=0.5, delivered_skipped_or_local=0.8)
     line = table_markdown([r]).splitlines()[2]
-    assert line.endswith("| 50 % | 80 % |  |"), line  # no trajectories: nothing against local
+    assert line.endswith("| 50 % | 80 % | – |  |"), line  # no trajectories: nothing against local
+    r["delivered_skipped_or_backfilled"] = 0.7
+    assert table_markdown([r]).splitlines()[2].endswith("| 50 % | 80 % | 70 % |  |")
+
+
+def test_scans_an_edge_took_in_a_backfill_are_counted_once() -> None:
+    """A backfilled scan reached the edge later (the attach after its outage): counted beside the
+    delivered and skipped, once, also when it was booked skipped (a stall) or received as well."""
+    from zoffload.lab.scan_experiment import _slot_figures
+
+    recs = [{"seq": str(i), "status": s, "pose_source": p, "backfill": b, "interarrival": "0.1"}
+            for i, (s, p, b) in enumerate([("acked", "edge", "")] * 4 + [("source:stall", "local", "1"),
+                                           ("local", "local", "1"), ("local", "local", "1"),
+                                           ("lost", "local", "1"), ("local", "local", ""),
+                                           ("acked", "edge", "1")])]
+    received = [r for r in recs if r["status"] == "acked"]
+    fig = _slot_figures(recs, received, 0.1, 10)
+    assert fig["delivered_or_skipped"] == pytest.approx(0.6)  # 5 received, 1 skipped
+    assert fig["delivered_skipped_or_local"] == pytest.approx(0.9)  # + the 3 kept local with a pose
+    assert fig["delivered_skipped_or_backfilled"] == pytest.approx(0.9)  # + 2 local and the lost one
 
 
 def test_trajectory_against_local_is_taken_over_the_same_scans(tmp_path: Path) -> None:

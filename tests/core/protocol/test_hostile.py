@@ -359,3 +359,75 @@ def test_a_checkpoints_turn_rate_is_version_8_and_bounded() -> None:
     for bad in (-0.1, float("nan"), float("inf"), 4.0, "0.1"):
         with pytest.raises(wire.WireError, match="turn_rate"):
             wire.decode(msgpack.packb({**raw, "turn_rate": bad}, use_bin_type=True), expect=wire.Checkpoint)
+
+
+def test_an_attachs_backfill_is_version_9_and_checked_scan_by_scan() -> None:
+    """Version 9: an attach carries its backfill (coded scans, concatenated, and their sizes) only
+    when there is one; each scan is decoded and checked as any scan, and sizes that do not cut the
+    bytes into whole scans, a scan of another robot, seqs that do not ascend or more scans than
+    the limit are refused with a ``WireError``, nothing else."""
+    raw = msgpack.unpackb(valid_messages()["attach_v9"])
+    assert raw["v"] == 9
+    attach = wire.decode(valid_messages()["attach_v9"], expect=wire.Attach)
+    scans = attach.backfill_scans()
+    assert [s.seq for s in scans] == [11, 12] and all(len(s.cloud_and_times()[0]) == 500 for s in scans)
+    plain = dataclasses.replace(attach, backfill=None, backfill_sizes=None)
+    assert msgpack.unpackb(wire.encode(plain))["v"] == 6 and plain.backfill_scans() == []
+    data, sizes = attach.backfill, attach.backfill_sizes
+    assert data is not None and sizes is not None
+    half = int(sizes[0])
+    bad_fields = [
+        {"backfill_sizes": sizes[:1]},  # the sizes do not cover the bytes
+        {"backfill_sizes": np.array([half - 1, half + 1])},  # ... cover them, but not whole scans
+        {"backfill_sizes": np.array([0, 2 * half])},
+        {"backfill_sizes": None},
+    ]
+    for change in bad_fields:
+        fields = {**raw}
+        for k, v in change.items():
+            if v is None:
+                fields.pop(k)
+            else:
+                fields[k] = {"nd": "<i8", "shape": [len(v)], "data": np.asarray(v, "<i8").tobytes()}
+        with pytest.raises(wire.WireError):
+            wire.decode(msgpack.packb(fields, use_bin_type=True), expect=wire.Attach).backfill_scans()
+    scan = wire.decode(bytes(data[:half]), expect=wire.Scan)
+    for second in (wire.encode(dataclasses.replace(scan, robot="robot2")),
+                   wire.encode(dataclasses.replace(scan, seq=11)), wire.encode(scan)[:-7]):
+        odd = dataclasses.replace(attach, backfill=np.frombuffer(bytes(data[:half]) + second, np.uint8),
+                                  backfill_sizes=np.array([half, len(second)]))
+        with pytest.raises(wire.WireError):
+            odd.backfill_scans()  # another robot's; not after the first; cut short
+    many = dataclasses.replace(attach, backfill=np.frombuffer(bytes(data[:half]) * 3, np.uint8),
+                               backfill_sizes=np.array([half] * 3))
+    with pytest.raises(wire.WireError, match="at most 2"):
+        many.backfill_scans(wire.Limits(max_backfill_scans=2))
+
+
+def test_an_attachs_backfill_cannot_declare_more_points_than_a_scan() -> None:
+    """A receiver decodes a backfill's points before registering them: a coded scan declaring
+    more than ``CODED_POINTS_PER_BYTE`` points a byte, or scans declaring more than one scan's
+    ``max_points`` together, are refused; so are sizes whose sum wraps a 64-bit integer."""
+    attach = wire.decode(valid_messages()["attach_v9"], expect=wire.Attach)
+    assert attach.backfill is not None and attach.backfill_sizes is not None
+    half = int(attach.backfill_sizes[0])
+    scan = wire.decode(bytes(attach.backfill[:half]), expect=wire.Scan)
+    assert scan.packed is not None
+
+    def with_second(other: wire.Scan) -> wire.Attach:
+        second = wire.encode(other)
+        data = np.frombuffer(bytes(attach.backfill[:half]) + second, np.uint8)
+        return dataclasses.replace(attach, backfill=data, backfill_sizes=np.array([half, len(second)]))
+
+    bomb = dataclasses.replace(scan, seq=12, n_points=wire.CODED_POINTS_PER_BYTE * len(scan.packed) + 1)
+    with pytest.raises(wire.WireError, match="points in"):
+        with_second(bomb).backfill_scans()
+    with pytest.raises(wire.WireError, match="more than 900 points"):
+        with_second(dataclasses.replace(scan, seq=12)).backfill_scans(wire.Limits(max_points=900))
+    two = with_second(dataclasses.replace(scan, seq=12))
+    assert len(two.backfill_scans(wire.Limits(max_points=1000))) == 2
+    raw = msgpack.unpackb(valid_messages()["attach_v9"])
+    wrap = np.array([2**62, 2**62, 2**62, 2**62 + len(attach.backfill)], "<i8")  # sums to len mod 2**64
+    raw["backfill_sizes"] = {"nd": "<i8", "shape": [4], "data": wrap.tobytes()}
+    with pytest.raises(wire.WireError, match="sizes"):
+        wire.decode(msgpack.packb(raw, use_bin_type=True), expect=wire.Attach)

@@ -20,7 +20,7 @@ from zoffload.robot.fleet import (
     Sensor,
     attach_message,
 )
-from zoffload.robot.odometry import Snapshot
+from zoffload.robot.odometry import Backfilled, Snapshot
 
 
 def checkpoint(edge: str, epoch: int, seq: int, final: bool = False, robot: str = "r1") -> wire.Checkpoint:
@@ -273,3 +273,33 @@ def test_the_robot_knows_which_codec_version_each_live_edge_reads() -> None:
     assert [f.reads(e) for e in ("e1", "e2", "e3", "gone")] == [5, 3, 3, 3]
     f.edge_status("e3", {"wire.reads": 1e9}, 2.0)
     assert f.reads("e3") == 3
+
+
+def test_the_backfill_goes_only_to_an_edge_that_reads_9_and_within_its_bytes() -> None:
+    """Version 9: the scans the robot registered itself go with the attach, each a q16d scan of
+    its coarse grid, only to an edge that reads 9; beyond the byte budget they are thinned
+    evenly, the first and the last kept; nothing when not one fits."""
+    rng = np.random.default_rng(3)
+    fill = [Backfilled(seq, 100.0 + seq / 10, 28_000, rng.uniform(-30, 30, (900, 3)).astype(np.float32), 0.8)
+            for seq in range(40, 60)]
+    sensor = Sensor(40.0, 0.07, 10.0)
+    seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    old = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 8, fill)),
+                      expect=wire.Attach)
+    assert old.backfill is None and old.backfill_sizes is None
+    full = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, 10**7)),
+                       expect=wire.Attach)
+    scans = full.backfill_scans()
+    assert [s.seq for s in scans] == list(range(40, 60))
+    assert all(s.coding == "q16d" and s.voxel == 0.8 and s.epoch == 4 and s.robot == "r1" for s in scans)
+    cloud = scans[0].cloud_and_times()[0]
+    assert np.abs(cloud - fill[0].points).max() <= 0.04 + 1e-6  # a tenth of the grid for a step
+    each = len(full.backfill) // 20
+    thin = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, 7 * each)),
+                       expect=wire.Attach)
+    kept = [s.seq for s in thin.backfill_scans()]
+    assert thin.backfill is not None and len(thin.backfill) <= 7 * each
+    assert kept[0] == 40 and kept[-1] == 59 and 4 <= len(kept) <= 7
+    assert max(np.diff(kept)) - min(np.diff(kept)) <= 1  # evenly
+    none = attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, each // 2)
+    assert none.backfill is None and none.backfill_sizes is None

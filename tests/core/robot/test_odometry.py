@@ -247,3 +247,34 @@ def _attached_keeper(edge_run: tuple) -> tuple:
     keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3)
     keeper.edge_pose(29, mapper.poses[29])
     return fleet, ask, ledger, lock, odo, keeper
+
+
+def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(edge_run: tuple) -> None:
+    """The backfill (codec version 9): every scan the local odometry registers, caught-up ones
+    included, is kept at its grid (the odometry's voxel by default), the newest
+    ``backfill_scans``; the snapshot hands them to the attach and the period's end forgets them."""
+    src, mapper, cp = edge_run
+    odo = LocalOdometry("robot1", src.max_range, catch_up=4, backfill_scans=8)
+    assert odo.backfill_voxel == odo.voxel == 0.8
+    for i in range(30, 32):
+        odo.hold(i, src.read(i).points, i / 10)
+    odo.begin(cp, [(29, mapper.poses[29])])
+    odo.catch_up(before=32, posed=set())
+    for i in range(32, 36):
+        odo.register(i, src.read(i).points, i / 10)
+    assert [b.seq for b in odo.snapshot().backfill] == list(range(30, 36))  # the caught-up two too
+    for i in range(36, 40):
+        odo.register(i, src.read(i).points, i / 10)
+    fill = odo.snapshot().backfill
+    assert [b.seq for b in fill] == list(range(32, 40))  # bounded: the newest 8
+    raw = src.read(39).points
+    assert fill[-1].n_raw == int(np.isfinite(raw).all(axis=1).sum()) and fill[-1].stamp == 3.9
+    assert fill[-1].points.dtype == np.float32 and 200 < len(fill[-1].points) < len(raw) / 10
+    keys = np.floor(fill[-1].points / 0.8)  # one centroid per voxel of the grid
+    assert len(np.unique(keys, axis=0)) == len(keys)
+    odo.end()
+    assert odo.snapshot().backfill == ()
+    off = LocalOdometry("robot1", src.max_range)  # not asked for: none kept
+    off.begin(cp, [])
+    off.register(30, src.read(30).points, 3.0)
+    assert off.snapshot().backfill == ()
