@@ -376,7 +376,7 @@ class FleetLink:
         self.backfill_bytes = backfill_bytes
         self.on_backfill = on_backfill  # told the seqs of a backfill an edge accepted with its attach
         self._attached_to: str | None = None  # the edge of the last attach accepted
-        self._backfill_unanswered = False  # the last attach carried a backfill and got no answer
+        self._backfill_unanswered = False  # an attach with a backfill got no answer since the last accepted
         self.state = state
         self.robot = state.robot
         self.sensor = sensor
@@ -501,9 +501,10 @@ class FleetLink:
                 break
         result = self.state.attach_result(edge, epoch, reply, time.monotonic())
         where = f"checkpoint {cp.edge or 'local'}:{cp.seq}" if cp is not None else "no checkpoint"
-        self._backfill_unanswered = msg.backfill_sizes is not None and reply is None
+        if msg.backfill_sizes is not None and reply is None:
+            self._backfill_unanswered = True  # until an attach is accepted
         if result == "attached":
-            self._attached_to = edge
+            self._attached_to, self._backfill_unanswered = edge, False
             if msg.backfill_sizes is not None:
                 self.state.count("backfill_accepted", len(msg.backfill_sizes))
                 if self.on_backfill is not None:

@@ -41,6 +41,9 @@ class FakeEdge:
         self.epoch = 0
         self.acking = True
         self.muted = False  # token and status stay, no scan is answered (a hung edge)
+        # An attach with a backfill goes unanswered (the fault: a link too slow to carry its bytes
+        # within the robot's attach_timeout, which this machine's loopback cannot be made)
+        self.ignore_backfill = False
         self._lock = threading.Lock()
         self.token = self.session.liveliness().declare_token(KEYS.edge_alive(edge))
         self.queryable = self.session.declare_queryable(KEYS.all_attaches(edge), self._on_attach)
@@ -65,6 +68,8 @@ class FakeEdge:
         att = wire.decode(query.payload.to_bytes(), expect=wire.Attach)
         with self._lock:
             self.attaches.append(att)
+            if self.ignore_backfill and att.backfill_sizes is not None:
+                return
             self.epoch = att.epoch
         query.reply(query.key_expr, wire.encode(wire.AttachReply(
             robot=att.robot, edge=self.edge, epoch=att.epoch, accepted=True, robots=1, capacity=4)))
@@ -179,6 +184,7 @@ def test_attach_stale_acks_local_odometry_and_reattach_with_checkpoint(free_port
     cp = wire.decode(att.checkpoint, expect=wire.Checkpoint)
     assert cp.edge == "" and cp.robot == "robot1" and cp.seq > last_a and len(cp.cloud()) > 0
     assert att.reads == max(wire.READS) >= 6 and cp.packed is not None  # edge B reads 6 or newer: coded
+    assert att.backfill is None  # the robot was not attached to B before: B has nothing to register it from
     assert all(s > cp.seq for s in att.local_seqs) and list(att.local_seqs) == sorted(att.local_seqs)
     assert att.epoch > a.epoch and {s.epoch for s in b.scans} == {att.epoch}
     m = robot.metrics()
@@ -282,3 +288,44 @@ def test_after_a_kill_the_next_edge_gets_the_poses_after_the_checkpoint_and_the_
     assert first.prior is not None and first.prior_seq == max(unanswered) < first.seq
     assert np.allclose(first.prior[0], led.poses[max(unanswered)])
     assert b.scans[-1].prior is None  # B answered: the prior ends
+
+
+@pytest.mark.parametrize("ignore", [False, True], ids=["answered", "unanswered-with-backfill"])
+def test_back_to_its_edge_after_an_outage_the_robot_hands_over_its_backfill(
+        free_port: int, tmp_path: Path, ignore: bool) -> None:
+    """The robot's edge goes and comes back under the same id: the attach back to it carries the
+    scans the robot registered itself, at its local odometry's grid (codec version 9), the newest
+    ``backfill_scans``; the robot marks them in its records. When that attach goes unanswered (a
+    link too slow for its bytes), the next one goes without it and is accepted."""
+    with fleet_hub(free_port) as (edges, stop):
+        a = FakeEdge(free_port, "edgeA")
+        edges.append(a)
+        robot, thread = start_robot(free_port, tmp_path, stop, backfill_scans=12)
+        led = robot.ledger
+        wait_for(lambda: led.counters["acked"] >= 10, 30, "edge A acking")
+        a.leave()
+        a.close()
+        edges.remove(a)
+        wait_for(lambda: led.counters["local"] >= 20, 30, "local odometry")
+        back = FakeEdge(free_port, "edgeA")
+        back.ignore_backfill = ignore
+        edges.append(back)
+        state = robot.fleet_state
+        assert state is not None
+        wait_for(lambda: led.counters["acked"] >= 25, 30, "edge A acking again")
+        stop_robot(stop, thread)
+    first = back.attaches[0]
+    assert first.backfill is not None and first.backfill_sizes is not None
+    scans = first.backfill_scans()
+    assert 1 <= len(scans) <= 12 and all(s.coding == "q16d" and s.voxel == 0.8 for s in scans)
+    f = robot.metrics()["fleet"]
+    assert f["backfill_sent"] >= len(scans)
+    marked = sorted(int(r["seq"]) for r in csv.DictReader(open(tmp_path / "robot_scans.csv"))
+                    if r.get("backfill") == "1")
+    if not ignore:
+        assert f["backfill_accepted"] == len(scans) and marked == [s.seq for s in scans]
+        assert all(r["status"] != "acked" for r in csv.DictReader(open(tmp_path / "robot_scans.csv"))
+                   if r.get("backfill") == "1")
+    else:  # unanswered: sent again without it, accepted, nothing marked
+        assert len(back.attaches) >= 2 and back.attaches[1].backfill is None
+        assert f.get("backfill_accepted", 0) == 0 and marked == []
