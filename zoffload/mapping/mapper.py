@@ -448,12 +448,14 @@ class RobotMapper:
         """
         last = self.last_seq
         newer = [(int(s), p) for s, p in backfill if last is not None and int(s) > last]
+        if last is None or not newer:
+            self.backfill_unused += len(backfill)
+            return None
         seqs = np.asarray(local_seqs, np.int64).reshape(-1)
         poses = np.asarray(local_poses, np.float64).reshape(-1, 4, 4)
-        first = newer[0][0] if newer else 0
-        mine = np.flatnonzero((seqs > (last or 0)) & (seqs <= first))
-        if (last is None or not newer or first - last > self.max_gap
-                or (first - last > BACKFILL_GAP and not len(mine))):
+        first = newer[0][0]
+        mine = np.flatnonzero((seqs > last) & (seqs <= first))
+        if first - last > self.max_gap or (first - last > BACKFILL_GAP and not len(mine)):
             self.backfill_unused += len(backfill)
             return None
         self.backfill_unused += len(backfill) - len(newer)

@@ -353,16 +353,11 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
             points=np.zeros((0, 3), np.float32), coding="q16d", quant_step=step, n_points=len(b.points),
             origin=origin, packed=np.frombuffer(packed, np.uint8), epoch=epoch)))
     sizes = np.array([len(c) for c in coded], np.int64)
-    keep = np.arange(len(coded))
     for m in range(len(coded), 0, -1):
         keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
         if int(sizes[keep].sum()) <= budget:
-            break
-    else:
-        return None, None
-    if not len(keep) or int(sizes[keep].sum()) > budget:
-        return None, None
-    return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep]
+            return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep]
+    return None, None
 
 
 class FleetLink:
