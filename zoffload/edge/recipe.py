@@ -116,8 +116,9 @@ class BoundedMapper:
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
                       local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = ()) -> bool:
         near = [(seq, self._near(points)[0]) for seq, points in backfill]
-        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses,
-                                          [(seq, points) for seq, points in near if len(points)])
+        kept = [(seq, points) for seq, points in near if len(points)]
+        self.inner.backfill_unused += len(near) - len(kept)  # no point within the mapper's range
+        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses, kept)
         self._trim()
         return seeded
 

@@ -255,6 +255,14 @@ def test_a_backfill_the_mapper_cannot_continue_is_left_unused() -> None:
         far.register(i, SCANS[i])
     far.continue_from(None, np.zeros(0, np.int64), np.zeros((0, 4, 4)), fill)  # 30 - 25 > 3
     assert far.backfilled == 0 and far.backfill_unused == 4 and far.last_seq == 25
+    bounded = MapperRecipe()(wire.decode(wire.encode(wire.Scan(
+        robot="r1", seq=0, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.07,
+        max_range=SRC.max_range, n_raw=len(SCANS[0]), points=SCANS[0].astype(np.float32))), expect=wire.Scan))
+    for i in range(26):
+        bounded.register(i, SCANS[i])
+    beyond = np.full((10, 3), 10 * SRC.max_range)  # no point within the mapper's range: counted, not lost
+    bounded.continue_from(None, np.zeros(0, np.int64), np.zeros((0, 4, 4)), [(26, beyond), (27, SCANS[27])])
+    assert bounded.backfill_unused == 1 and bounded.backfilled == 1 and bounded.inner.last_seq == 27
 
 
 def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
