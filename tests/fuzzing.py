@@ -88,6 +88,13 @@ def valid_messages(robot: str = "robot1", edge: str = "edge1") -> dict[str, byte
                                  local_poses=np.stack([np.eye(4)] * 2), reads=9,
                                  backfill=np.frombuffer(backfill, np.uint8),
                                  backfill_sizes=np.array([len(backfill) // 2] * 2, np.int64)),
+        # Version 10: and the robot's pose of each backfilled scan
+        "attach_v10": wire.Attach(robot=robot, epoch=2, max_range=50.0, voxel_max=0.07, rate_hz=10.0,
+                                  checkpoint=wire.encode(cp), local_seqs=np.array([11, 12]),
+                                  local_poses=np.stack([np.eye(4)] * 2), reads=10,
+                                  backfill=np.frombuffer(backfill, np.uint8),
+                                  backfill_sizes=np.array([len(backfill) // 2] * 2, np.int64),
+                                  backfill_poses=np.stack([np.eye(4)] * 2)),
         "attach_reply": wire.AttachReply(robot=robot, edge=edge, epoch=2, accepted=True, robots=1,
                                          capacity=4),
     }

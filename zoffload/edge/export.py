@@ -1,7 +1,8 @@
 """What the edge writes of one robot's map session to ``map_dir``.
 
 Files of a robot's first session in this process: ``<robot>_map.<fmt>``, ``<robot>_trajectory.npz``
-(``seqs``, ``poses``), ``<robot>_edge.json`` (its counters). A robot evicted for idleness and back
+(``seqs``, ``poses``), ``<robot>_edge.json`` (its counters, and the seqs of the outage scans its
+backfills registered, ``backfilled_seqs``). A robot evicted for idleness and back
 later starts a new map in a new frame (KISS-ICP starts at the identity again): session ``g`` writes
 ``<robot>_map.<g>.<fmt>`` and so on, so no export overwrites another. Poses trimmed from memory
 during a session go to ``<robot>_trajectory[.<g>].part<k>.npz`` and are merged into the exported
@@ -66,7 +67,10 @@ class RobotFiles:
         for p in self.parts:
             p.unlink(missing_ok=True)
         self.parts = []
-        summary = dict(counters, map_points=mapper.map_points)
+        summary: dict[str, object] = dict(counters, map_points=mapper.map_points)
+        backfilled = getattr(mapper, "backfilled_seqs", None)
+        if backfilled is not None:  # which outage scans its backfills registered (the newest 100,000)
+            summary["backfilled_seqs"] = [int(s) for s in backfilled]
         self.path("edge", "json").write_text(json.dumps(summary, indent=2))
         cloud = mapper.map_cloud()
         if len(cloud) == 0:  # nothing registered (every scan refused): no map file to write

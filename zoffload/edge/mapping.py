@@ -388,7 +388,8 @@ class MappingService:
             if not detail:
                 self.fleet.attach(robot, attach.epoch, now, attach.reads)
                 rs = rs or self._new_robot(robot)
-                rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses, backfill)
+                rs.pending = Continue(checkpoint, attach.local_seqs, attach.local_poses, backfill,
+                                      attach.backfill_poses if backfill else None)
                 rs.final_pending = False
             self.counters["attach_refused" if detail else "attaches"] += 1
             robots, capacity = len(self.robots), self.fleet.effective_capacity(now)
@@ -419,7 +420,9 @@ class MappingService:
                             str(exc)[:200])
                 break
         before = getattr(mapper, "backfilled", 0), getattr(mapper, "backfill_unused", 0)
-        if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses, backfill):
+        bposes = pending.backfill_poses[:len(backfill)] if pending.backfill_poses is not None else None
+        if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses, backfill,
+                                bposes):
             log.info("robot %s continues from its checkpoint of scan %d", rs.robot,
                      pending.checkpoint.seq if pending.checkpoint else -1)
         if backfill:

@@ -81,6 +81,10 @@ class BoundedMapper:
     def backfill_unused(self) -> int:
         return self.inner.backfill_unused
 
+    @property
+    def backfilled_seqs(self) -> Sequence[int]:
+        return self.inner.backfilled_seqs
+
     def _near(self, points: np.ndarray, times: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray | None]:
         if len(points) and max(float(points.max()), -float(points.min())) > self.max_range:
@@ -114,11 +118,15 @@ class BoundedMapper:
         return self.inner.map_cloud()
 
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
-                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = ()) -> bool:
+                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = (),
+                      backfill_poses: np.ndarray | None = None) -> bool:
         near = [(seq, self._near(points)[0]) for seq, points in backfill]
-        kept = [(seq, points) for seq, points in near if len(points)]
+        ok = [bool(len(points)) for _, points in near]
+        kept = [b for b, k in zip(near, ok, strict=True) if k]
         self.inner.backfill_unused += len(near) - len(kept)  # no point within the mapper's range
-        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses, kept)
+        poses = (np.asarray(backfill_poses)[np.asarray(ok, bool)]
+                 if backfill_poses is not None and len(backfill_poses) == len(near) else None)
+        seeded = self.inner.continue_from(checkpoint, local_seqs, local_poses, kept, poses)
         self._trim()
         return seeded
 

@@ -43,7 +43,8 @@ class FleetMapper(Mapper, Protocol):
     a stand-in without these methods maps attached robots without checkpoints."""
 
     def continue_from(self, checkpoint: wire.Checkpoint | None, local_seqs: np.ndarray,
-                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = ()) -> bool: ...
+                      local_poses: np.ndarray, backfill: Sequence[tuple[int, np.ndarray]] = (),
+                      backfill_poses: np.ndarray | None = None) -> bool: ...
 
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False, coded: bool = True) -> wire.Checkpoint | None: ...
@@ -74,6 +75,7 @@ class Continue:
     local_seqs: np.ndarray
     local_poses: np.ndarray
     backfill: tuple[wire.Scan, ...] = ()  # the scans the robot registered itself (version 9)
+    backfill_poses: np.ndarray | None = None  # the robot's pose of each (version 10)
 
 
 PERIOD_SCANS = 15  # inter-arrivals the robot's scan period is the median of

@@ -80,7 +80,9 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
     if exp.repeat > 1:
         row: dict[str, Any] = {}
         for i in range(1, exp.repeat + 1):
-            row = run_or_reuse(replace(exp, out=str(Path(exp.out) / f"run{i}"), repeat=1))
+            # each run its own link seed (the emulator's jitter), as the scan experiment's repeats
+            row = run_or_reuse(replace(exp, out=str(Path(exp.out) / f"run{i}"), repeat=1,
+                                       seed=exp.seed + i - 1))
             if row.get("cut_short"):
                 break
         return row
@@ -179,7 +181,8 @@ def sweep_runs(out: Path, traces: Sequence[str], strategies: Sequence[str], quot
                     if kw.get("send_size") == "detector":
                         name += "_shrunk"
                     folder = out / f"q{quota or 0:g}" / Path(trace).stem / name / f"run{i}"
-                    args = dict(kw, encoding=encoding or kw.get("encoding", "bgr8"), cpu_quota=quota)
+                    args = dict(kw, encoding=encoding or kw.get("encoding", "bgr8"), cpu_quota=quota,
+                                seed=int(kw.get("seed") or 0) + i - 1)  # repeat i: its own link seed
                     runs.append(DetectExperiment(trace=trace, strategy=strategy, out=str(folder), **args))
     return runs
 

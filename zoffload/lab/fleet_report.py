@@ -36,17 +36,22 @@ def has_pose(row: Mapping[str, Any]) -> bool:
 def pose_gaps(rows: Iterable[Mapping[str, Any]], period: float) -> tuple[int, float]:
     """(scans, seconds) of the longest run of consecutive produced scans without any pose, after
     the first pose (a robot that never had one is not "without" it yet: the start-up is separate).
-    Seconds: capture time of the run's last scan − its first + one period."""
+    Seconds: as the robot's own figure (robot/scanlog.py), from the posed scan before the run to
+    the one after it (capture times; the run's end closing the last: its last scan + a period)."""
     best = (0, 0.0)
     run: list[Mapping[str, Any]] = []
+    before: float | None = None  # the capture time of the last posed scan
     seen_pose = False
     for r in [*_sorted_rows(rows), {"status": "acked"}]:  # a sentinel closes the last run
         if has_pose(r):
+            t1 = _num(r.get("capture_stamp"))
+            if t1 is None and run:
+                last = _num(run[-1].get("capture_stamp"))
+                t1 = last + period if last is not None else None
             if seen_pose and len(run) > best[0]:
-                t0, t1 = _num(run[0].get("capture_stamp")), _num(run[-1].get("capture_stamp"))
-                secs = (t1 - t0 + period) if t0 is not None and t1 is not None else len(run) * period
+                secs = (t1 - before) if t1 is not None and before is not None else (len(run) + 1) * period
                 best = (len(run), secs)
-            seen_pose, run = True, []
+            seen_pose, run, before = True, [], t1
         elif seen_pose:
             run.append(r)
     return best

@@ -113,20 +113,28 @@ def kept_local(recs: list[dict[str, Any]]) -> int:
 
 
 def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], period: float,
-                  produced: int) -> dict[str, Any]:
+                  produced: int, registered: set[int] | None = None) -> dict[str, Any]:
     """Skipped scans and timeliness per slot: a scan sent after k deliberately skipped ones was
     meant to arrive (k + 1) periods after the previous one. ``delivered_skipped_or_local`` also
     counts the scans an outage kept local (``kept_local``), ``delivered_skipped_or_backfilled``
-    those an edge took in an attach's backfill (``backfill`` in the robot's records)."""
+    those the edge registered from an attach's backfill: the robot's records mark the scans of a
+    backfill an edge *accepted* (``backfill``), and of those only the seqs the edge says it
+    registered (``registered``, its ``backfilled_seqs``) count; an edge that left a backfill
+    unused (too far behind, a failed registration) took none of it. Without ``registered`` (an
+    edge that does not say) the marks count."""
     skipped = sum(r.get("status") in DELIBERATE for r in recs)
     local = kept_local(recs)
     counted = {r.get("seq") for r in received} | {r.get("seq") for r in recs if r.get("status") in DELIBERATE}
-    backfilled = sum(str(r.get("backfill") or "") == "1" and r.get("seq") not in counted for r in recs)
+    backfilled = sum(str(r.get("backfill") or "") == "1" and r.get("seq") not in counted
+                     and (registered is None or _seq(r) in registered) for r in recs)
     on_time = [float(r["interarrival"]) <= SLOT_SLACK * period * (1 + int(float(r.get("skipped") or 0)))
                for r in received if r.get("interarrival") not in (None, "")
                and np.isfinite(float(r["interarrival"]))]
     return {
         "scans_skipped": skipped,
+        # of them, those the policy held back in an ack silence (``source:stall``: mostly an
+        # outage's scans, which the link could not have carried; announced, so the edge bridges them)
+        "scans_stalled": sum(r.get("status") == "source:stall" for r in recs),
         "skipped_share": skipped / produced if produced else None,
         "delivered_or_skipped": (len(received) + skipped) / produced if produced else None,
         "scans_kept_local": local,
@@ -138,9 +146,16 @@ def _slot_figures(recs: list[dict[str, Any]], received: list[dict[str, Any]], pe
     }
 
 
-def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int, err: Any,
+def _seq(r: dict[str, Any]) -> int | None:
+    try:
+        return int(r.get("seq"))  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+
+
+def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int | None, err: Any,
                reference: str, balance: dict[str, int] | None, period: float = 0.1,
-               cpu: dict[str, Any] | None = None) -> dict[str, Any]:
+               cpu: dict[str, Any] | None = None, registered: set[int] | None = None) -> dict[str, Any]:
     sent = [r for r in recs if r.get("bytes") not in (None, "")]
     received = [r for r in recs if r.get("status") in ("acked", "edge_dropped", "edge_error", "late")]
     t = np.array([float(r["interarrival"]) for r in received if r.get("interarrival") not in (None, "")
@@ -165,7 +180,7 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int,
         "trajectory_error": err.as_dict() if err else None,
         "trajectory_reference": reference,
         "balance": balance,
-        **(_slot_figures(recs, received, period, produced) if exp.policy != "local" else {}),
+        **(_slot_figures(recs, received, period, produced, registered) if exp.policy != "local" else {}),
         # the robot's CPU per scan: the offload path (median per scan sent), or KISS-ICP locally
         "robot_cpu_ms": (cpu or {}).get("per_scan_ms"),
         "robot_process_cpu_ms": (cpu or {}).get("process_ms_per_scan"),
@@ -282,30 +297,40 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
     poses = np.load(out / "robot_poses.npz") if (out / "robot_poses.npz").exists() else None
     gt = {int(s): p for s, p in zip(poses["gt_seqs"], poses["gt_poses"], strict=True)} if poses else {}
-    err, reference, map_points = None, "", 0
+    err, reference, map_points = None, "", None  # no answer to the final map query: unknown, not 0
     if reply is not None and reply.scans:
         np.savez(out / "trajectory.npz", seqs=reply.seqs, poses=reply.poses)
         np.save(out / "map_sample.npy", _sample(reply.points))
         map_points = len(reply.points)
         ref_seqs, ref_poses, reference = _reference(source, recs, replay, is_sim, gt)
         err = trajectory_error(reply.seqs, reply.poses, ref_seqs, ref_poses)
+    # the outage scans the robot handed its edge with an attach, registered there
+    backfilled, registered = _backfilled(out / f"{robot.robot_id}_edge.json") if exp.attach else ({}, None)
     row = _table_row(exp, recs, map_points, err, reference, metrics.get("balance"), 1 / rate,
-                     metrics.get("cpu"))
+                     metrics.get("cpu"), registered)
     row["cut_short"] = run.cut_short
     row["link_seed"] = link_seed
-    if exp.attach:  # the outage scans the robot handed its edge with an attach, registered there
-        row.update(_backfilled(out / f"{robot.robot_id}_edge.json"))
+    row.update(backfilled)
     return row
 
 
-def _backfilled(path: Path) -> dict[str, Any]:
+def _backfilled(path: Path) -> tuple[dict[str, Any], set[int] | None]:
     """``scans_backfilled``: the edge's counter of the outage scans it registered from an attach's
-    backfill (late: robot/odometry.py). Some were also booked skipped (a stall) or lost on the
-    way, so it is not added to "delivered or skipped"."""
+    backfill (late: robot/odometry.py; some were also booked skipped, a stall, or lost on the way,
+    so it is not added to "delivered or skipped"), and the seqs it registered (its
+    ``backfilled_seqs``; None when it does not say). An edge that wrote nothing registered none."""
     try:
-        return {"scans_backfilled": int(json.loads(path.read_text()).get("backfilled", 0))}
-    except (OSError, ValueError, AttributeError, TypeError):
-        return {}
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}, set()
+    if not isinstance(summary, dict):
+        return {}, set()
+    seqs = summary.get("backfilled_seqs")
+    registered = {int(s) for s in seqs if isinstance(s, int)} if isinstance(seqs, list) else None
+    try:
+        return {"scans_backfilled": int(summary.get("backfilled", 0))}, registered
+    except (ValueError, TypeError):
+        return {}, registered
 
 
 def summary_line(row: dict[str, Any]) -> str:
@@ -318,7 +343,7 @@ def summary_line(row: dict[str, Any]) -> str:
             f"{row['scans_received']}/{row['scans_produced']} (sent {row['scans_sent']}), "
             f"T {f(row['T_mean'], '.3f')} s "
             f"({f(100 * row['T_le_0.11'] if row['T_le_0.11'] is not None else None, '.0f')} % <= 0.11), "
-            f"map {row['map_points']:,} pts, ATE {f(err.get('ate_rmse'), '.3f')} m, "
+            f"map {f(row['map_points'], ',')} pts, ATE {f(err.get('ate_rmse'), '.3f')} m, "
             f"robot CPU {f(row.get('robot_cpu_ms'), '.2f')} ms/scan"
             + (f", skipped {row['scans_skipped']}, on time for slot "
                f"{f(100 * row['on_time_slot'] if row.get('on_time_slot') is not None else None, '.0f')} %"

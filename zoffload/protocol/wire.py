@@ -55,7 +55,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
+READS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -481,6 +481,11 @@ class Attach(Message):
     backfill: np.ndarray | None = _array(ArraySpec("|u1", (-1,)), optional=True, since=9)
     backfill_sizes: np.ndarray | None = _array(ArraySpec("<i8", (-1,), cap="max_backfill_scans"),
                                                optional=True, since=9)
+    # Version 10: the robot's own pose of each backfilled scan (its odometry's frame, the one its
+    # local poses are in): the edge predicts the backfill's first scan from it when that scan
+    # lies more than a few after the edge's last (an outage longer than the robot's ring)
+    backfill_poses: np.ndarray | None = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid",
+                                                         cap="max_backfill_scans"), optional=True, since=10)
 
     def __post_init__(self) -> None:
         if len(self.local_seqs) != len(self.local_poses):
@@ -494,6 +499,10 @@ class Attach(Message):
                                 f"{len(self.backfill)} bytes (each at least 1)")
             if not len(sizes) and len(self.backfill):
                 raise WireError(f"attach: {len(self.backfill)} backfill bytes without sizes")
+        if self.backfill_poses is not None and (self.backfill_sizes is None
+                                                or len(self.backfill_poses) != len(self.backfill_sizes)):
+            n = 0 if self.backfill_sizes is None else len(self.backfill_sizes)
+            raise WireError(f"attach: {len(self.backfill_poses)} backfill poses for {n} backfilled scans")
 
     def backfill_scans(self, limits: Limits = DEFAULT_LIMITS) -> list[Scan]:
         """The backfill's scans, decoded and checked as any scan (``WireError`` if one is not a

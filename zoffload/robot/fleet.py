@@ -327,15 +327,19 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
     """The attach for an edge that reads codec version ``edge_reads``: from 6 on, the robot says
     it reads 6 (the edge then codes its checkpoints) and sends its checkpoint coded; to an older
     edge, a version-5 attach with the checkpoint's map as float32 points; the checkpoint's turn rate
-    only to an edge that reads 8; the backfill (``backfill_payload``) only to one that reads 9."""
+    only to an edge that reads 8; the backfill (``backfill_payload``) only to one that reads 9, and
+    the robot's pose of each backfilled scan only to one that reads 10."""
     if cp is not None:
         cp = cp.readable_by(edge_reads)
-    data, sizes = (backfill_payload(robot, epoch, sensor, backfill, backfill_bytes)
-                   if edge_reads >= 9 and backfill else (None, None))
+    data, sizes, kept = (backfill_parts(robot, epoch, sensor, backfill, backfill_bytes)
+                         if edge_reads >= 9 and backfill else (None, None, []))
+    bposes = None
+    if edge_reads >= 10 and kept and all(backfill[i].pose is not None for i in kept):
+        bposes = np.stack([np.asarray(backfill[i].pose, np.float64) for i in kept])
     return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
                        rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
                        local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5,
-                       backfill=data, backfill_sizes=sizes)
+                       backfill=data, backfill_sizes=sizes, backfill_poses=bposes)
 
 
 def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[Backfilled],
@@ -344,6 +348,13 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
     Zstandard level 1), concatenated, and their sizes; thinned evenly from the first scan (the
     last too where two fit) to at most ``budget`` bytes (an attach is one query, answered within
     ``attach_timeout``: 128 kB take half a second at 2 Mbps). (None, None) when nothing fits."""
+    data, sizes, _ = backfill_parts(robot, epoch, sensor, backfill, budget)
+    return data, sizes
+
+
+def backfill_parts(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[Backfilled],
+                   budget: int = BACKFILL_BYTES) -> tuple[np.ndarray | None, np.ndarray | None, list[int]]:
+    """``backfill_payload`` and the indices of the scans it kept."""
     coded: list[bytes] = []
     for b in backfill:
         origin, step, packed = encode_q16d(b.points, quant_step(b.voxel), level=1, widen=True)
@@ -356,8 +367,8 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
     for m in range(len(coded), 0, -1):
         keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
         if int(sizes[keep].sum()) <= budget:
-            return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep]
-    return None, None
+            return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep], keep.tolist()
+    return None, None, []
 
 
 class FleetLink:

@@ -55,6 +55,7 @@ class Backfilled:
     n_raw: int  # points before the grid
     points: np.ndarray  # float32 (m, 3): the centroids of the ``voxel`` grid
     voxel: float
+    pose: np.ndarray | None = None  # the local odometry's pose of it (4x4; version 10 sends it)
 
 
 @dataclass(frozen=True)
@@ -179,7 +180,7 @@ class LocalOdometry:
             self._last_seq = seq
             self._poses.append((seq, pose))
             if coarse is not None and len(coarse):
-                self._backfill.append(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel))
+                self._backfill.append(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel, pose))
             self._since_checkpoint += 1
             # A period's first registration takes one at once (the previous one is of another period)
             if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:

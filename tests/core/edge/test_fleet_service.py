@@ -377,7 +377,7 @@ def test_a_reattach_with_a_backfill_registers_the_outage_scans(free_port: int) -
         assert data is not None and sizes is not None
         return data, sizes
 
-    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=3))
+    service = MappingService(KEYS, MapperRecipe(), edge_id="e1", workers=1, fleet=Fleet("e1", capacity=4))
     with serving(service, free_port), client(free_port) as s:
         wait_token(s, KEYS.edge_alive("e1"))
         for robot in ("r1", "r2", "r3"):
@@ -414,3 +414,27 @@ def test_a_reattach_with_a_backfill_registers_the_outage_scans(free_port: int) -
         assert got["r3"].counters["backfilled"] == 0 and seqs["r3"] == [*range(12), 30]
         assert service.attach_drops.snapshot().get("malformed", 0) == 1
         assert service.status()["backfilled"] == 23 and balanced(service)
+        assert list(got["r2"].mapper.backfilled_seqs) == list(range(12, 17))
+        assert not got["r3"].mapper.backfilled_seqs
+        # Version 10: a backfill whose first scan lies 9 after the edge's last (the robot's ring
+        # shorter than its outage) is registered from the robot's pose of it (here r1's edge's:
+        # the same scans, the same frame); without the poses it would be left
+        r1_seqs, r1_poses = got["r1"].mapper.trajectory()
+        acks = Inbox(s, KEYS.scan_acks("r4"), wire.ScanAck)
+        assert attach(s, "r4", 1).accepted
+        pub = s.declare_publisher(KEYS.scan("r4"))
+        for n, seq in enumerate(range(12), 1):
+            pub.put(scan("r4", seq, epoch=1, edge="e1"))
+            acks.wait(n)
+        data, sizes = fill("r4", range(20, 30))
+        msg = wire.Attach(robot="r4", epoch=2, max_range=SRC.max_range, voxel_max=0.07, rate_hz=10.0,
+                          local_seqs=np.zeros(0, np.int64), local_poses=np.zeros((0, 4, 4)), reads=10,
+                          backfill=data, backfill_sizes=sizes.astype(np.int64),
+                          backfill_poses=r1_poses[np.isin(r1_seqs, range(20, 30))])
+        replies = list(s.get(KEYS.attach("r4", "e1"), payload=wire.encode(msg), timeout=5))
+        assert wire.decode(replies[0].ok.payload.to_bytes(), expect=wire.AttachReply).accepted
+        pub.put(scan("r4", 30, epoch=2, edge="e1"))
+        acks.wait(13)
+        r4 = service.robots["r4"]
+        assert r4.counters["backfilled"] == 10 and list(r4.mapper.backfilled_seqs) == list(range(20, 30))
+        assert r4.mapper.trajectory()[0].tolist() == [*range(12), *range(20, 31)]

@@ -3,6 +3,7 @@ global map budget and the trajectory ring with its spill to disk."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,8 @@ def test_map_budget_and_trajectory_ring(tmp_path: Path) -> None:
     full = np.load(tmp_path / "r1_trajectory.npz")
     assert full["seqs"].tolist() == list(range(40)) and full["poses"].shape == (40, 4, 4)
     assert not list(tmp_path.glob("*.part*"))
+    summary = json.loads((tmp_path / "r1_edge.json").read_text())
+    assert summary["registered"] == 40 and summary["backfilled_seqs"] == []  # none came in a backfill
     # A later session of the same robot writes beside it, not over it
     again = RobotFiles(tmp_path, "r1", generation=1)
     again.export(m, {})

@@ -23,6 +23,8 @@ def test_the_default_grid_is_every_strategy_link_and_quota_three_times(tmp_path:
     # repeat-major: the whole grid once before any second run
     assert all(p.out.endswith("run1") for p in plan[:len(plan) // 3])
     assert {p.images for p in plan} == {"coco-clips@holdout"} and {p.max_frames for p in plan} == {None}
+    # each repeat its own link seed: the spread of a cell is the link's jitter too, not the host's alone
+    assert {p.seed for p in plan if p.out.endswith("run2")} == {1} and first.seed == 0
     jpeg = sweep_runs(tmp_path, ["detect-capped"], ["dispatch@jpeg"], [1.0], 1, encoding="bgr8")[0]
     assert jpeg.encoding == "jpeg" and jpeg.strategy == "dispatch" and jpeg.out.endswith("dispatch_jpeg/run1")
 

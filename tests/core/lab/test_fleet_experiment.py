@@ -113,7 +113,8 @@ def _rows(statuses: str, period: float = 0.1) -> list[dict[str, object]]:
 def test_pose_gaps_count_consecutive_scans_without_a_pose() -> None:
     assert fr.pose_gaps(_rows("aaaa"), 0.1) == (0, 0.0)
     n, s = fr.pose_gaps(_rows("aaxxxlaxa"), 0.1)
-    assert n == 3 and s == pytest.approx(0.3)
+    assert n == 3 and s == pytest.approx(0.4)  # from the pose before (0.1 s) to the one after (0.5 s)
+    assert fr.pose_gaps(_rows("aaxx"), 0.1) == (2, pytest.approx(0.3))  # the run's end closes it
     assert fr.pose_gaps(_rows("xxxaaxxaaxx"), 0.1)[0] == 2  # before the first pose: start-up, not a gap
     assert fr.pose_gaps([], 0.1) == (0, 0.0)
 

@@ -33,6 +33,16 @@ def test_table_has_our_rows_the_papers_rows_and_map_ratio_to_local() -> None:
     assert "0.250" in lines[3]
     assert len(lines) == 4 + len(SEED_TABLE_I)
     assert "529" not in md and "528" in md and "92,644" in md and "-28 %" in md  # the paper's own
+    # against the local run of the same scans only: a local run of another length is not compared
+    other = dict(row("local", 150_000, 60), scans_produced=60)
+    assert "-60 %" in table_markdown([other, row("local", 200_000, 100), row("raw", 80_000)]).splitlines()[4]
+    assert "| raw | wifi-locations |" in table_markdown([other, row("raw", 80_000)]).splitlines()[3]
+    assert table_markdown([other, row("raw", 80_000)]).splitlines()[3].split("|")[9].strip() == ""
+    # a run whose final map query went unanswered has no map: no ratio, and no crash; cut short: said
+    lost = dict(row("raw", None), trajectory_error=None, cut_short=True)  # type: ignore[arg-type]
+    line = table_markdown([row("local", 200_000, 100), lost]).splitlines()[3]
+    assert line.startswith("| raw (1 cut short) |")
+    assert [c.strip() for c in line.split("|")[8:10]] == ["–", ""]
 
 
 def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) -> None:
@@ -99,8 +109,30 @@ def test_scans_an_edge_took_in_a_backfill_are_counted_once() -> None:
     received = [r for r in recs if r["status"] == "acked"]
     fig = _slot_figures(recs, received, 0.1, 10)
     assert fig["delivered_or_skipped"] == pytest.approx(0.6)  # 5 received, 1 skipped
+    assert fig["scans_skipped"] == fig["scans_stalled"] == 1  # held back in an ack silence
     assert fig["delivered_skipped_or_local"] == pytest.approx(0.9)  # + the 3 kept local with a pose
     assert fig["delivered_skipped_or_backfilled"] == pytest.approx(0.9)  # + 2 local and the lost one
+    # the marks say which scans an edge accepted in a backfill; what it registered, it says itself
+    fig = _slot_figures(recs, received, 0.1, 10, registered={4, 5, 9})
+    assert fig["delivered_skipped_or_backfilled"] == pytest.approx(0.7)  # + 5 only: 6 and 7 left unused
+    assert _slot_figures(recs, received, 0.1, 10, registered=set())["delivered_skipped_or_backfilled"] == 0.6
+
+
+def test_the_edges_word_on_its_backfill_is_read_from_its_counters(tmp_path: Path) -> None:
+    """The experiment reads the registered backfill from the edge's ``<robot>_edge.json``: no
+    file, registered none; an edge that does not list them, unknown (the robot's marks count)."""
+    import json
+
+    from zoffload.lab.scan_experiment import _backfilled
+
+    path = tmp_path / "r1_edge.json"
+    assert _backfilled(path) == ({}, set())
+    path.write_text(json.dumps({"backfilled": 3, "backfilled_seqs": [7, 8, 9]}))
+    assert _backfilled(path) == ({"scans_backfilled": 3}, {7, 8, 9})
+    path.write_text(json.dumps({"backfilled": 3}))
+    assert _backfilled(path) == ({"scans_backfilled": 3}, None)
+    path.write_text("[1, 2")
+    assert _backfilled(path) == ({}, set())
 
 
 def test_trajectory_against_local_is_taken_over_the_same_scans(tmp_path: Path) -> None:

@@ -52,6 +52,10 @@ def test_shipped_traces_load_and_say_what_the_issue_asks() -> None:
     assert any(wifi.at(t / 10).outage for t in range(800))
     out = load_trace("outage")
     assert sum(out.at(t / 10).outage for t in range(300)) >= 30  # at least 3 s of drops
+    dead = load_trace("deadzone")  # dead zones longer than the backfill's ring (5 s) and max_gap
+    spans = [round(t1 - t0) for t0, t1, st in zip(dead.times, dead.times[1:], dead.states, strict=False)
+             if st.outage]
+    assert spans == [12, 25] and not dead.states[-1].outage
 
 
 def test_trace_files_and_missing_names(tmp_path: Path) -> None:

@@ -289,6 +289,11 @@ def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
     far = edge()
     far.continue_from(None, *no_pose, fill)  # nothing to predict scan 26 from
     assert far.backfilled == 0 and far.backfill_unused == 8 and far.last_seq == 19
+    # version 10: the robot's pose of each backfilled scan predicts the first across the gap
+    own = edge()
+    own.continue_from(None, *no_pose, fill, np.asarray([robot.poses[i] for i in range(26, 34)]))
+    assert own.backfilled == 8 and own.seqs[-8:] == list(range(26, 34))
+    assert np.linalg.norm(own.poses[-1][:3, 3] - robot.poses[33][:3, 3]) < 0.1
     posed = edge()
     seqs = np.array([*range(20, 26), 38, 39])  # the robot's poses: the gap, and two after the backfill
     poses = np.asarray([robot.poses[i] for i in seqs])
@@ -320,3 +325,5 @@ def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
     monkeypatch.setattr(RobotMapper, "register", flaky)
     broken.continue_from(None, *no_pose, [(i, SCANS[i]) for i in range(20, 34)])
     assert broken.backfilled == 9 and broken.backfill_unused == 5 and broken.last_seq == 28
+    assert list(broken.backfilled_seqs) == list(range(20, 29))  # which: the edge writes them out
+    assert list(posed.backfilled_seqs) == list(range(26, 34)) and not far.backfilled_seqs

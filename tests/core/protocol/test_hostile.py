@@ -404,6 +404,24 @@ def test_an_attachs_backfill_is_version_9_and_checked_scan_by_scan() -> None:
         many.backfill_scans(wire.Limits(max_backfill_scans=2))
 
 
+def test_an_attachs_backfill_poses_are_version_10_one_rigid_pose_a_scan() -> None:
+    """Version 10: the robot's pose of each backfilled scan, sent with a backfill only; as many as
+    the backfill's scans, each a rigid transform, else the attach is refused with a ``WireError``."""
+    attach = wire.decode(valid_messages()["attach_v9"], expect=wire.Attach)
+    poses = np.repeat(np.eye(4)[None], 2, axis=0)
+    posed = dataclasses.replace(attach, backfill_poses=poses)
+    assert msgpack.unpackb(wire.encode(posed))["v"] == 10
+    np.testing.assert_array_equal(wire.decode(wire.encode(posed), expect=wire.Attach).backfill_poses, poses)
+    raw = msgpack.unpackb(wire.encode(posed))
+    for bad in (poses[:1], np.repeat(np.eye(4)[None], 3, axis=0), poses * 2.0):
+        fields = dict(raw, backfill_poses={"nd": "<f8", "shape": list(bad.shape), "data": bad.tobytes()})
+        with pytest.raises(wire.WireError):
+            wire.decode(msgpack.packb(fields, use_bin_type=True), expect=wire.Attach)
+    fields = {k: v for k, v in raw.items() if k not in ("backfill", "backfill_sizes")}
+    with pytest.raises(wire.WireError):  # poses without a backfill
+        wire.decode(msgpack.packb(fields, use_bin_type=True), expect=wire.Attach)
+
+
 def test_an_attachs_backfill_cannot_declare_more_points_than_a_scan() -> None:
     """A receiver decodes a backfill's points before registering them: a coded scan declaring
     more than ``CODED_POINTS_PER_BYTE`` points a byte, or scans declaring more than one scan's

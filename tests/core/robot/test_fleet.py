@@ -303,3 +303,28 @@ def test_the_backfill_goes_only_to_an_edge_that_reads_9_and_within_its_bytes() -
     assert max(np.diff(kept)) - min(np.diff(kept)) <= 1  # evenly
     none = attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, each // 2)
     assert none.backfill is None and none.backfill_sizes is None
+
+
+def test_the_robots_pose_of_each_backfilled_scan_goes_to_an_edge_that_reads_10() -> None:
+    """Version 10: with the backfill, the local odometry's pose of each scan kept (thinned alike);
+    an edge that reads 9 gets the scans without them."""
+    rng = np.random.default_rng(4)
+    fill = []
+    for seq in range(40, 60):
+        pose = np.eye(4)
+        pose[0, 3] = seq / 10
+        cloud = rng.uniform(-30, 30, (900, 3)).astype(np.float32)
+        fill.append(Backfilled(seq, 100.0 + seq / 10, 28_000, cloud, 0.8, pose))
+    sensor = Sensor(40.0, 0.07, 10.0)
+    seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    v9 = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, 10**7)),
+                     expect=wire.Attach)
+    assert v9.backfill_sizes is not None and v9.backfill_poses is None
+    each = len(v9.backfill) // 20 if v9.backfill is not None else 0
+    thin = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 10, fill, 7 * each)),
+                       expect=wire.Attach)
+    kept = [s.seq for s in thin.backfill_scans()]
+    assert thin.backfill_poses is not None and len(thin.backfill_poses) == len(kept) < 20
+    np.testing.assert_allclose(thin.backfill_poses[:, 0, 3], np.array(kept) / 10)
+    unposed = [dataclasses.replace(b, pose=None) for b in fill]  # a ring of an older robot: none sent
+    assert attach_message("r1", 4, sensor, None, seqs, poses, 10, unposed, 10**7).backfill_poses is None

@@ -141,6 +141,12 @@ def _key(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
             str(r.get("max_frames")))
 
 
+def settled(run: dict[str, Any]) -> bool:
+    """Every frame of the run in exactly one final bucket: its ledger balanced with none left
+    ``pending`` (the ledger counts a pending frame as balanced while the run goes on)."""
+    return bool(run.get("balanced")) and not (run.get("balance") or {}).get("pending")
+
+
 def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per experiment: its runs' figures averaged (``n``, ``sd`` per figure, ``runs``)."""
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
@@ -149,7 +155,7 @@ def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     rows = []
     for members in groups.values():
         row = dict(members[0], n=len(members), sd={}, runs=members,
-                   balanced=all(m.get("balanced") for m in members))
+                   balanced=all(settled(m) for m in members))
         for key in FIGURES:
             values = [float(m[key]) for m in members if isinstance(m.get(key), int | float)
                       and not isinstance(m.get(key), bool) and math.isfinite(m[key])]
@@ -285,7 +291,7 @@ def write_detect_report(folders: list[Path], out: Path | None = None) -> Path:
     rows = aggregate(runs)
     figures = plot(rows, out)
     images = sorted({str(r.get("images", "coco-clips")) for r in rows})
-    unbalanced = [str(m["folder"]) for r in rows for m in r["runs"] if not m.get("balanced")]
+    unbalanced = [str(m["folder"]) for r in rows for m in r["runs"] if not settled(m)]
     text = [
         "# Perception offloading: the thesis' Tables 6.3–6.5 layout",
         "",

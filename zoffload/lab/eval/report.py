@@ -127,7 +127,8 @@ def same_scans_vs_local(row: dict[str, Any], local: dict[str, Any]) -> tuple[flo
     simulator's ground truth or the trajectories. The local run registers every scan and an
     offloaded one only those that reached the edge (an outage's scans are the robot's own, not in
     the edge's trajectory), so their errors over all scans are taken over different stretches of
-    the drive: local's last outage-length stretch can pull its figure down or up."""
+    the drive: local's last outage-length stretch can pull its figure down or up. (The edge's
+    trajectory also holds the robot's own poses an attach handed over, a few a run.)"""
     from zoffload.lab.eval.trajectory import trajectory_error
 
     found = (_trajectory(m.get("folder")) for m in local.get("runs", [local]))
@@ -162,9 +163,15 @@ def _cell(r: dict[str, Any], key: str, spec: str, scale: float = 1.0, unit: str 
     return f"{text} ± {format(scale * sd, spec)}{unit}" if sd is not None else text + unit
 
 
+def _local_key(r: dict[str, Any]) -> tuple[str, int | None]:
+    produced = r.get("scans_produced")
+    return str(r.get("scans")), None if produced is None else round(float(produced))
+
+
 def table_markdown(runs: list[dict[str, Any]]) -> str:
     rows = [r if "n" in r else dict(r, n=1, sd={}) for r in runs]
-    local = {r["scans"]: r for r in rows if r["policy"] == "local"}
+    # a run is set against the local run of the same scans: same source and as many of them
+    local = {_local_key(r): r for r in rows if r["policy"] == "local"}
     lines = [
         "| run | trace | S (kB/scan) | points before → after | received / sensor scans (sent) | T̄ (s) "
         "| T ≤ 0.11 s | map points | vs local | trajectory error (m) | robot CPU (ms/scan) | skipped "
@@ -173,15 +180,17 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        ref = local.get(r["scans"])
+        ref = local.get(_local_key(r))
         vs = (f"{100 * (r['map_points'] / ref['map_points'] - 1):+.0f} %"
-              if ref and ref is not r and ref["map_points"] else "")
+              if ref and ref is not r and ref.get("map_points") and r.get("map_points") is not None else "")
         same = same_scans_vs_local(r, ref) if ref and ref is not r else None
         same_text = ""
         if same is not None:
             spread = f" ± {100 * same[1]:.0f}" if same[1] is not None else ""
             same_text = f"{100 * same[0]:+.0f}{spread} %"
-        name = r["policy"] + (f" ({r['n']} runs)" if r["n"] > 1 else "")
+        short = sum(bool(m.get("cut_short")) for m in r.get("runs", [r]))
+        name = (r["policy"] + (f" ({r['n']} runs)" if r["n"] > 1 else "")
+                + (f" ({short} cut short)" if short else ""))
         received = (_cell(r, "scans_received", ".0f") if r["n"] > 1 else str(r["scans_received"]))
         lines.append(
             f"| {name} | {r['trace'] if r['policy'] != 'local' else '(no network)'} "
@@ -293,12 +302,15 @@ def write_report(folders: list[Path], out: Path | None = None) -> Path:
         "not to send (the next one says so, the edge bridges the gap); on time for slot: received",
         "scans with T ≤ 1.1 × the period the robot meant them to take; + kept local in outages:",
         "delivered or skipped plus the scans the robot registered itself while its link was out;",
-        "+ backfilled: delivered or skipped plus the scans in the backfill of an attach an edge",
-        "accepted after an outage (codec version 9), each scan once; trajectory vs local, same",
-        "scans (simulator): each run's trajectory error over the scans its edge registered against the",
+        "+ backfilled: delivered or skipped plus the scans the edge registered from the backfill of",
+        "an attach after an outage (codec version 9; its `backfilled_seqs`), each scan once; vs local",
+        "and trajectory vs local, same scans: against the local run of the same scans (source and",
+        "count); the latter (simulator) is each run's trajectory error over the scans in its edge's",
+        "trajectory (registered there, or the robot's own poses an attach handed over) against the",
         "local runs' error over those same scans, mean ratio − 1 ± sd. Rows of several runs show",
-        "mean ± sd. The paper's rows are its own figures (LeGO-LOAM map points, a real Wi-Fi link),",
-        "ours come from the runs listed below.",
+        "mean ± sd over the runs that have the figure (a run whose final map query went unanswered",
+        "has no map or trajectory); runs cut short are named. The paper's rows are its own figures",
+        "(LeGO-LOAM map points, a real Wi-Fi link), ours come from the runs listed below.",
         "",
         "Trajectory reference: " + "; ".join(refs) + ".",
         "",
