@@ -419,7 +419,8 @@ class MappingService:
                 log.warning("robot %s: backfill scan %d does not decode: %s", rs.robot, scan.seq,
                             str(exc)[:200])
                 break
-        before = getattr(mapper, "backfilled", 0), getattr(mapper, "backfill_unused", 0)
+        before = (getattr(mapper, "backfilled", 0), getattr(mapper, "backfill_unused", 0),
+                  getattr(mapper, "backfill_posed", 0))
         bposes = pending.backfill_poses[:len(backfill)] if pending.backfill_poses is not None else None
         if mapper.continue_from(pending.checkpoint, pending.local_seqs, pending.local_poses, backfill,
                                 bposes):
@@ -429,6 +430,8 @@ class MappingService:
             done = getattr(mapper, "backfilled", 0) - before[0]
             self._count(rs, "backfilled", done)
             self._count(rs, "backfill_unused", getattr(mapper, "backfill_unused", 0) - before[1])
+            # of the backfills, those predicted from the robot's poses of their scans (version 10)
+            self._count(rs, "backfill_posed", getattr(mapper, "backfill_posed", 0) - before[2])
             log.info("robot %s: %d of its %d backfilled scans (%d..%d) registered", rs.robot, done,
                      len(backfill), backfill[0][0], backfill[-1][0])
 

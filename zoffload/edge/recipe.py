@@ -82,6 +82,10 @@ class BoundedMapper:
         return self.inner.backfill_unused
 
     @property
+    def backfill_posed(self) -> int:
+        return self.inner.backfill_posed
+
+    @property
     def backfilled_seqs(self) -> Sequence[int]:
         return self.inner.backfilled_seqs
 

@@ -36,8 +36,10 @@ def has_pose(row: Mapping[str, Any]) -> bool:
 def pose_gaps(rows: Iterable[Mapping[str, Any]], period: float) -> tuple[int, float]:
     """(scans, seconds) of the longest run of consecutive produced scans without any pose, after
     the first pose (a robot that never had one is not "without" it yet: the start-up is separate).
-    Seconds: as the robot's own figure (robot/scanlog.py), from the posed scan before the run to
-    the one after it (capture times; the run's end closing the last: its last scan + a period)."""
+    Seconds: the longest run's, from the posed scan before it to the one after it (capture
+    times; the run's end closing a last one: its last scan + a period), as the robot's own figure
+    measures a gap (robot/scanlog.py, which keeps the longest in seconds, whatever its scans, and
+    leaves a run still open at the end out)."""
     best = (0, 0.0)
     run: list[Mapping[str, Any]] = []
     before: float | None = None  # the capture time of the last posed scan

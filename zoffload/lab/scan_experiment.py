@@ -297,11 +297,14 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
     poses = np.load(out / "robot_poses.npz") if (out / "robot_poses.npz").exists() else None
     gt = {int(s): p for s, p in zip(poses["gt_seqs"], poses["gt_poses"], strict=True)} if poses else {}
-    err, reference, map_points = None, "", None  # no answer to the final map query: unknown, not 0
+    # no answer to the final map query: no map (unknown, not 0), and none of an earlier attempt's
+    err, reference = None, ""
+    map_points = len(reply.points) if reply is not None else None
+    for stale in ("trajectory.npz", "map_sample.npy"):
+        (out / stale).unlink(missing_ok=True)
     if reply is not None and reply.scans:
         np.savez(out / "trajectory.npz", seqs=reply.seqs, poses=reply.poses)
         np.save(out / "map_sample.npy", _sample(reply.points))
-        map_points = len(reply.points)
         ref_seqs, ref_poses, reference = _reference(source, recs, replay, is_sim, gt)
         err = trajectory_error(reply.seqs, reply.poses, ref_seqs, ref_poses)
     # the outage scans the robot handed its edge with an attach, registered there

@@ -231,6 +231,7 @@ class RobotMapper:
         self.backfilled = 0  # scans registered from an attach's backfill (continue_from)
         self.backfilled_seqs: deque[int] = deque(maxlen=BACKFILL_SEQS_KEPT)  # which, the newest
         self.backfill_unused = 0  # backfilled scans not registered (no earlier state, or too old)
+        self.backfill_posed = 0  # backfills whose first scan was predicted from their own poses (v10)
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
@@ -484,14 +485,25 @@ class RobotMapper:
             delta = motion_per_scan(np.array([s for s, _ in newer[:len(head)]], np.int64), head, None,
                                     self.max_gap)
             self.predict_from(first, first, head[0], delta if delta is not None else np.eye(4))
+            self.backfill_posed += 1
         elif first - last > 1 and len(mine):
             q = mine[-1]
             anchor = (last, np.array(self.odometry.last_pose))
             delta = motion_per_scan(seqs[mine], poses[mine], anchor, self.max_gap)
             if delta is not None:
                 self.predict_from(first, int(seqs[q]), poses[q], delta)
+        # the robot's poses of the backfill's scans (version 10): over a gap the robot's ring left
+        # between two of them (a ring thinned over a long outage), its motion from one to the next
+        robot_of = ({int(s): p for (s, _), p in zip(backfill, backfill_poses, strict=True)}
+                    if backfill_poses is not None and len(backfill_poses) == len(backfill) else {})
         done = 0
         for seq, points in newer:
+            prev = self.last_seq
+            if done and prev is not None and seq - prev > BACKFILL_GAP and {prev, seq} <= robot_of.keys():
+                rel = as_rigid(np.linalg.inv(np.asarray(robot_of[prev], np.float64))
+                               @ np.asarray(robot_of[seq], np.float64))
+                pose = np.asarray(self.odometry.last_pose, np.float64) @ rel
+                self.predict_from(seq, seq, pose, as_rigid(se3_power(rel, 1.0 / (seq - prev))))
             try:
                 self.register(seq, points)
             except Exception as exc:  # a scan KISS-ICP cannot take: the backfill ends before it
@@ -506,7 +518,11 @@ class RobotMapper:
             return None
         end = self.seqs[-1]
         at = np.flatnonzero(seqs == end)
-        correction = self.poses[-1] @ np.linalg.inv(poses[at[0]]) if len(at) else np.eye(4)
+        robot_end = poses[at[0]] if len(at) else None
+        if robot_end is None:
+            # the robot's pose of that scan from the backfill's own (its local poses start later)
+            robot_end = np.asarray(robot_of[end], np.float64) if end in robot_of else None
+        correction = self.poses[-1] @ np.linalg.inv(robot_end) if robot_end is not None else np.eye(4)
         after = seqs > end
         return seqs[after], np.einsum("ij,njk->nik", correction, poses[after])
 

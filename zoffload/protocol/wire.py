@@ -483,7 +483,8 @@ class Attach(Message):
                                                optional=True, since=9)
     # Version 10: the robot's own pose of each backfilled scan (its odometry's frame, the one its
     # local poses are in): the edge predicts the backfill's first scan from it when that scan
-    # lies more than a few after the edge's last (an outage longer than the robot's ring)
+    # lies more than a few after the edge's last, with no local pose in between (an outage
+    # longer than the robot's ring, up to the edge's ``max_gap`` scans after its last)
     backfill_poses: np.ndarray | None = _array(ArraySpec("<f8", (-1, 4, 4), values="rigid",
                                                          cap="max_backfill_scans"), optional=True, since=10)
 

@@ -68,6 +68,37 @@ class Snapshot:
     backfill: tuple[Backfilled, ...] = ()  # the period's newest scans at a coarse grid, ascending
 
 
+class BackfillRing:
+    """At most ``size`` of a period's registered scans, spread evenly over the whole period: every
+    ``stride``-th (the period's first always) and the newest; when more than ``size`` are kept the
+    stride doubles. The newest ``size`` alone left an outage longer than the ring without its start,
+    and the edge, more than ``max_gap`` scans behind the first, left the whole backfill (the
+    ``deadzone`` trace's 12 and 25 s, 2026-12-06); halving the whole ring each time it filled
+    instead thinned its oldest part exponentially (a 25 s outage: its first two scans 128 apart,
+    the backfill left again)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = max(0, size)
+        self.stride = 1
+        self.count = 0  # scans offered this period
+        self._kept: list[tuple[int, Backfilled]] = []  # (index in the period, scan)
+
+    def add(self, scan: Backfilled) -> None:
+        i, self.count = self.count, self.count + 1
+        if self._kept and self._kept[-1][0] % self.stride:  # the newest so far, off the stride: replaced
+            self._kept.pop()
+        self._kept.append((i, scan))
+        if len(self._kept) > self.size:
+            self.stride *= 2
+            self._kept = [(j, b) for j, b in self._kept if j % self.stride == 0 or j == i]
+
+    def clear(self) -> None:
+        self.stride, self.count, self._kept = 1, 0, []
+
+    def scans(self) -> tuple[Backfilled, ...]:
+        return tuple(b for _, b in self._kept)
+
+
 class LocalOdometry:
     def __init__(self, robot: str, max_range: float, voxel: float | None = None, threads: int = 1,
                  catch_up: int = 10, checkpoint_every: int = 10, backfill_scans: int = 0,
@@ -78,7 +109,8 @@ class LocalOdometry:
         # The period's newest registered scans at a coarse grid (the next attach's backfill)
         # (a scan's voxel is at most 10 m)
         self.backfill_voxel = backfill_voxel if backfill_voxel is not None else min(self.voxel, 10.0)
-        self._backfill: deque[Backfilled] = deque(maxlen=max(0, backfill_scans))
+        self._backfill = BackfillRing(backfill_scans)
+        self.backfill_scans = max(0, backfill_scans)
         self.threads = threads
         self.checkpoint_every = max(1, checkpoint_every)
         self.ring: deque[Held] = deque(maxlen=max(0, catch_up))
@@ -166,7 +198,7 @@ class LocalOdometry:
             raise RuntimeError("local odometry registers only between begin() and end()")
         frame = np.asarray(points, np.float64).reshape(-1, 3)
         frame = frame[np.isfinite(frame).all(axis=1)]
-        coarse = self._coarse(frame) if self._backfill.maxlen and len(frame) else None
+        coarse = self._coarse(frame) if self.backfill_scans and len(frame) else None
         gap = seq - self._last_seq if self._last_seq is not None else 1
         stretch = 1 < gap <= MAX_GAP
         with self._lock:
@@ -180,7 +212,7 @@ class LocalOdometry:
             self._last_seq = seq
             self._poses.append((seq, pose))
             if coarse is not None and len(coarse):
-                self._backfill.append(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel, pose))
+                self._backfill.add(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel, pose))
             self._since_checkpoint += 1
             # A period's first registration takes one at once (the previous one is of another period)
             if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:
@@ -205,7 +237,7 @@ class LocalOdometry:
         with self._lock:
             c = self._checkpoint
             after = list(self._poses)
-            backfill = tuple(self._backfill)
+            backfill = self._backfill.scans()
         seqs = np.array([s for s, _ in after], np.int64)
         poses = np.array([p for _, p in after], np.float64).reshape(-1, 4, 4)
         return Snapshot(c, seqs, poses, backfill)

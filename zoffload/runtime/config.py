@@ -416,8 +416,10 @@ class RobotFleetSettings(_Strict):
     backfill_scans: int = Field(
         default=50, ge=0, le=64,
         description="scans the robot registered itself while no edge mapped it that it keeps, at a coarse "
-                    "grid, for the next attach to hand over (the newest; 0: none): the edge that mapped it "
-                    "registers them instead of jumping the outage (codec version 9)",
+                    "grid, with their poses, for the next attach to hand over (0: none; when full, every "
+                    "other one is dropped but the outage's first and the newest, so they span the whole "
+                    "outage): the edge that mapped it registers them instead of jumping the outage (codec "
+                    "versions 9 and 10)",
     )
     backfill_voxel: float | None = Field(
         default=None, gt=0, le=10,

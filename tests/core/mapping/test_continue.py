@@ -292,8 +292,28 @@ def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
     # version 10: the robot's pose of each backfilled scan predicts the first across the gap
     own = edge()
     own.continue_from(None, *no_pose, fill, np.asarray([robot.poses[i] for i in range(26, 34)]))
-    assert own.backfilled == 8 and own.seqs[-8:] == list(range(26, 34))
+    assert own.backfilled == 8 and own.seqs[-8:] == list(range(26, 34)) and own.backfill_posed == 1
     assert np.linalg.norm(own.poses[-1][:3, 3] - robot.poses[33][:3, 3]) < 0.1
+    # the robot's poses after the backfill (its local ones start after its checkpoint, here 37)
+    # join moved by the correction found against its pose of the backfill's last scan
+    drifted = edge()
+    moved = np.asarray([robot.poses[i] for i in [*range(26, 34), 38, 39]])
+    moved[:, 0, 3] += 0.3  # the robot's odometry 30 cm off the edge's frame
+    drifted.continue_from(None, np.array([38, 39]), moved[-2:], fill, moved[:-2])
+    assert drifted.seqs[-2:] == [38, 39] and drifted.backfilled == 8
+    off = np.linalg.norm(drifted.poses[-1][:3, 3] - robot.poses[39][:3, 3])
+    assert off < 0.1, off  # the 30 cm taken out
+    # a ring thinned over a long outage: gaps between the backfill's scans, each bridged by the
+    # robot's own motion from one to the next (its poses 30 cm off this mapper's frame: relative
+    # motion only)
+    sparse = [20, 21, 25, 29, 33, 37, 38, 39]
+    thin = edge()
+    shifted = np.asarray([robot.poses[i] for i in sparse])
+    shifted[:, 0, 3] += 0.3
+    thin.continue_from(None, *no_pose, [(i, SCANS[i]) for i in sparse], shifted)
+    assert thin.backfilled == len(sparse) and thin.seqs[-len(sparse):] == sparse and thin.after_gap == 0
+    for i in sparse:
+        assert np.linalg.norm(thin.poses[thin.seqs.index(i)][:3, 3] - robot.poses[i][:3, 3]) < 0.1, i
     posed = edge()
     seqs = np.array([*range(20, 26), 38, 39])  # the robot's poses: the gap, and two after the backfill
     poses = np.asarray([robot.poses[i] for i in seqs])

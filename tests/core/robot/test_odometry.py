@@ -8,7 +8,7 @@ import pytest
 from zoffload.mapping.checkpoint import take_checkpoint
 from zoffload.mapping.mapper import RobotMapper
 from zoffload.protocol import wire
-from zoffload.robot.odometry import LocalOdometry, local_voxel_size
+from zoffload.robot.odometry import Backfilled, LocalOdometry, local_voxel_size
 from zoffload.sources.simulated import SimulatedSource
 
 pytest.importorskip("kiss_icp")
@@ -251,8 +251,9 @@ def _attached_keeper(edge_run: tuple) -> tuple:
 
 def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(edge_run: tuple) -> None:
     """The backfill (codec version 9): every scan the local odometry registers, caught-up ones
-    included, is kept at its grid (the odometry's voxel by default), the newest
-    ``backfill_scans``; the snapshot hands them to the attach and the period's end forgets them."""
+    included, is kept at its grid (the odometry's voxel by default) with its pose, at most
+    ``backfill_scans`` thinned over the period; the snapshot hands them to the attach and the
+    period's end forgets them."""
     src, mapper, cp = edge_run
     odo = LocalOdometry("robot1", src.max_range, catch_up=4, backfill_scans=8)
     assert odo.backfill_voxel == odo.voxel == 0.8
@@ -266,7 +267,15 @@ def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(
     for i in range(36, 40):
         odo.register(i, src.read(i).points, i / 10)
     fill = odo.snapshot().backfill
-    assert [b.seq for b in fill] == list(range(32, 40))  # bounded: the newest 8
+    # bounded by 8: full, every other one is dropped but the period's first and the newest, so
+    # the ring covers the whole period (a long outage's start too), densest where newest
+    assert [b.seq for b in fill] == [30, 32, 34, 36, 38, 39]
+    snap = odo.snapshot()
+    np.testing.assert_allclose(fill[-1].pose, snap.poses[list(snap.seqs).index(39)])  # its pose (v10)
+    for i in range(40, 60):
+        odo.register(i, src.read(i).points, i / 10)
+    seqs = [b.seq for b in odo.snapshot().backfill]
+    assert seqs[0] == 30 and seqs[-1] == 59 and len(seqs) <= 8 and seqs == sorted(seqs)
     raw = src.read(39).points
     assert fill[-1].n_raw == int(np.isfinite(raw).all(axis=1).sum()) and fill[-1].stamp == 3.9
     assert fill[-1].points.dtype == np.float32 and 200 < len(fill[-1].points) < len(raw) / 10
@@ -278,3 +287,21 @@ def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(
     off.begin(cp, [])
     off.register(30, src.read(30).points, 3.0)
     assert off.snapshot().backfill == ()
+
+
+def test_the_backfill_ring_spreads_over_an_outage_longer_than_it() -> None:
+    """A 25 s outage at 10 Hz into a ring of 50: every stride-th scan from the period's first on,
+    and the newest, the stride doubling as it fills; no gap between two kept scans beyond twice
+    the even spread (the edge registers a backfill only when it reaches back to its last scan)."""
+    from zoffload.robot.odometry import BackfillRing
+
+    ring = BackfillRing(50)
+    for seq in range(1000, 1255):
+        ring.add(Backfilled(seq, 0.0, 1, np.zeros((1, 3), np.float32), 0.8))
+        kept = [b.seq for b in ring.scans()]
+        assert kept[0] == 1000 and kept[-1] == seq and len(kept) <= 50 and kept == sorted(kept)
+    gaps = np.diff(kept)
+    assert gaps.max() <= 2 * 255 / 50 and len(kept) >= 25, (gaps.max(), len(kept))
+    ring.clear()
+    ring.add(Backfilled(7, 0.0, 1, np.zeros((1, 3), np.float32), 0.8))
+    assert [b.seq for b in ring.scans()] == [7] and ring.stride == 1

@@ -164,8 +164,10 @@ def _cell(r: dict[str, Any], key: str, spec: str, scale: float = 1.0, unit: str 
 
 
 def _local_key(r: dict[str, Any]) -> tuple[str, int | None]:
-    produced = r.get("scans_produced")
-    return str(r.get("scans")), None if produced is None else round(float(produced))
+    """(scan source, scans the sensor produced): the most of the row's runs (a run cut short
+    produced fewer; the row's mean would match no local run)."""
+    produced = [float(p) for p in (m.get("scans_produced") for m in r.get("runs", [r])) if p is not None]
+    return str(r.get("scans")), round(max(produced)) if produced else None
 
 
 def table_markdown(runs: list[dict[str, Any]]) -> str:
