@@ -19,7 +19,8 @@ handed its edge the scans it registered itself in each outage at a coarse grid w
 after it: the replay registers the newest ``backfill_scans`` of each stretch of such scans that
 includes scans kept ``local`` (the robot was detached, so an attach followed) at that grid
 (``fleet.backfill_voxel``, else the local odometry's voxel), as the edge did, or, where the
-robot's records mark them (``backfill``), exactly those. ``--no-backfill`` replays the run as a
+robot's records mark them (``backfill``), exactly those (of them, only those the edge registered
+when its ``<robot>_edge.json`` lists them). ``--no-backfill`` replays the run as a
 robot without it would have gone.
 Per-point times (deskew) are left out.
 """
@@ -80,9 +81,10 @@ def _as_sent(points: np.ndarray, voxel: float, coding: str, fraction: float) -> 
     return decode_q16d(packed, len(cloud), origin, step)[0]
 
 
-def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float
-              ) -> dict[int, tuple[int, float, str]]:
-    """The scans a backfill handed over (module docstring): seq -> (index, voxel, coding)."""
+def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float,
+              registered: set[int] | None = None) -> dict[int, tuple[int, float, str]]:
+    """The scans a backfill handed over (module docstring): seq -> (index, voxel, coding); of
+    the marked ones only those the run's edge registered when it says which (``registered``)."""
     fleet = cfg.get("fleet") or {}
     keep = int(fleet.get("backfill_scans") or 0)
     if keep <= 0 or not fleet.get("attach", True):
@@ -91,7 +93,8 @@ def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float
                   or min(local_voxel_size(max_range, fleet.get("local_voxel")), 10.0))
     if rows and "backfill" in rows[0]:  # the robot marked the scans an edge took in a backfill
         return {int(r["seq"]): (int(r["index"]), voxel, "q16d") for r in rows
-                if r.get("backfill") == "1" and r.get("status") != "acked"}
+                if r.get("backfill") == "1" and r.get("status") != "acked"
+                and (registered is None or int(r["seq"]) in registered)}
     stretches: list[list[dict[str, str]]] = []
     for r in sorted(rows, key=lambda r: int(r["seq"])):
         if r.get("pose_source") == "local" and r.get("status") != "acked":
@@ -103,6 +106,19 @@ def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float
     # its edge answered again (the ring is forgotten then)
     attached_after = [st for st in stretches if any(r.get("status") == "local" for r in st)]
     return {int(r["seq"]): (int(r["index"]), voxel, "q16d") for st in attached_after for r in st[-keep:]}
+
+
+def _registered(folder: Path) -> set[int] | None:
+    """The backfilled scans the run's edge registered (its ``<robot>_edge.json``), None when it
+    does not say."""
+    for path in sorted(folder.glob("*_edge.json")):
+        try:
+            seqs = json.loads(path.read_text()).get("backfilled_seqs")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(seqs, list):
+            return {int(x) for x in seqs if isinstance(x, int)}
+    return None
 
 
 def remap(folder: Path, edge_bridges: bool = False, backfill: bool = True) -> dict[str, Any]:
@@ -126,7 +142,8 @@ def remap(folder: Path, edge_bridges: bool = False, backfill: bool = True) -> di
     voxel_max = float((cfg.get("voxel_range") or [0.0, cfg.get("voxel") or 0.0])[1])
     fraction = float(cfg.get("quant_fraction") or 0.1)
     mapper = MapperRecipe().mapper(source.max_range, voxel_max)  # the edge's defaults
-    filled = _backfill(rows, cfg, source.max_range) if backfill and not edge_bridges else {}
+    filled = (_backfill(rows, cfg, source.max_range, _registered(folder)) if backfill and not edge_bridges
+              else {})
     sent.update(filled)
     truth: dict[int, np.ndarray] = {}
     kept: dict[str, int] = {}

@@ -65,7 +65,7 @@ class Snapshot:
     checkpoint: wire.Checkpoint | None
     seqs: np.ndarray  # int64 (n,)
     poses: np.ndarray  # float64 (n, 4, 4)
-    backfill: tuple[Backfilled, ...] = ()  # the period's newest scans at a coarse grid, ascending
+    backfill: tuple[Backfilled, ...] = ()  # the period's scans at a coarse grid, spread over it, ascending
 
 
 class BackfillRing:
@@ -84,6 +84,8 @@ class BackfillRing:
         self._kept: list[tuple[int, Backfilled]] = []  # (index in the period, scan)
 
     def add(self, scan: Backfilled) -> None:
+        if not self.size:
+            return
         i, self.count = self.count, self.count + 1
         if self._kept and self._kept[-1][0] % self.stride:  # the newest so far, off the stride: replaced
             self._kept.pop()
@@ -106,8 +108,8 @@ class LocalOdometry:
         self.robot = robot
         self.max_range = max_range
         self.voxel = local_voxel_size(max_range, voxel)
-        # The period's newest registered scans at a coarse grid (the next attach's backfill)
-        # (a scan's voxel is at most 10 m)
+        # The period's registered scans at a coarse grid, spread over it (the next attach's
+        # backfill; a scan's voxel is at most 10 m)
         self.backfill_voxel = backfill_voxel if backfill_voxel is not None else min(self.voxel, 10.0)
         self._backfill = BackfillRing(backfill_scans)
         self.backfill_scans = max(0, backfill_scans)
