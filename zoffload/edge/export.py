@@ -20,6 +20,13 @@ import numpy as np
 from zoffload.mapping.export import write_point_cloud
 
 
+def registered_backfill(summary: object) -> set[int] | None:
+    """The seqs in a ``<robot>_edge.json`` summary's ``backfilled_seqs`` (what ``RobotFiles.export``
+    writes: the outage scans the edge registered from backfills); None when it does not list them."""
+    seqs = summary.get("backfilled_seqs") if isinstance(summary, dict) else None
+    return {int(s) for s in seqs if isinstance(s, int)} if isinstance(seqs, list) else None
+
+
 class MapSource(Protocol):
     @property
     def map_points(self) -> int: ...

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from zoffload.edge.export import registered_backfill
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.cloud import drop_non_finite
@@ -113,11 +114,11 @@ def _registered(folder: Path) -> set[int] | None:
     does not say."""
     for path in sorted(folder.glob("*_edge.json")):
         try:
-            seqs = json.loads(path.read_text()).get("backfilled_seqs")
-        except (OSError, ValueError, AttributeError):
+            registered = registered_backfill(json.loads(path.read_text()))
+        except (OSError, ValueError):
             continue
-        if isinstance(seqs, list):
-            return {int(x) for x in seqs if isinstance(x, int)}
+        if registered is not None:
+            return registered
     return None
 
 

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from zoffload.edge.export import registered_backfill
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.lab.link.trace import Trace, load_trace
 from zoffload.lab.runner import link_clock_start, run_offload
@@ -328,8 +329,7 @@ def _backfilled(path: Path) -> tuple[dict[str, Any], set[int] | None]:
         return {}, set()
     if not isinstance(summary, dict):
         return {}, set()
-    seqs = summary.get("backfilled_seqs")
-    registered = {int(s) for s in seqs if isinstance(s, int)} if isinstance(seqs, list) else None
+    registered = registered_backfill(summary)
     try:
         return {"scans_backfilled": int(summary.get("backfilled", 0))}, registered
     except (ValueError, TypeError):

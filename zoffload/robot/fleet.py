@@ -331,7 +331,7 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
     the robot's pose of each backfilled scan only to one that reads 10."""
     if cp is not None:
         cp = cp.readable_by(edge_reads)
-    data, sizes, kept = (backfill_parts(robot, epoch, sensor, backfill, backfill_bytes)
+    data, sizes, kept = (backfill_payload(robot, epoch, sensor, backfill, backfill_bytes)
                          if edge_reads >= 9 and backfill else (None, None, []))
     bposes = None
     if edge_reads >= 10 and kept and all(backfill[i].pose is not None for i in kept):
@@ -343,18 +343,12 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
 
 
 def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[Backfilled],
-                     budget: int = BACKFILL_BYTES) -> tuple[np.ndarray | None, np.ndarray | None]:
+                     budget: int = BACKFILL_BYTES) -> tuple[np.ndarray | None, np.ndarray | None, list[int]]:
     """The attach's backfill: each scan a q16d ``Scan`` (a tenth of its grid for a step,
-    Zstandard level 1), concatenated, and their sizes; thinned evenly from the first scan (the
-    last too where two fit) to at most ``budget`` bytes (an attach is one query, answered within
-    ``attach_timeout``: 128 kB take half a second at 2 Mbps). (None, None) when nothing fits."""
-    data, sizes, _ = backfill_parts(robot, epoch, sensor, backfill, budget)
-    return data, sizes
-
-
-def backfill_parts(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[Backfilled],
-                   budget: int = BACKFILL_BYTES) -> tuple[np.ndarray | None, np.ndarray | None, list[int]]:
-    """``backfill_payload`` and the indices of the scans it kept."""
+    Zstandard level 1), concatenated, their sizes, and the indices of the scans kept: thinned
+    evenly from the first scan (the last too where two fit) to at most ``budget`` bytes (an attach
+    is one query, answered within ``attach_timeout``: 128 kB take half a second at 2 Mbps).
+    (None, None, []) when nothing fits."""
     coded: list[bytes] = []
     for b in backfill:
         origin, step, packed = encode_q16d(b.points, quant_step(b.voxel), level=1, widen=True)

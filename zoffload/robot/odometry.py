@@ -112,7 +112,6 @@ class LocalOdometry:
         # backfill; a scan's voxel is at most 10 m)
         self.backfill_voxel = backfill_voxel if backfill_voxel is not None else min(self.voxel, 10.0)
         self._backfill = BackfillRing(backfill_scans)
-        self.backfill_scans = max(0, backfill_scans)
         self.threads = threads
         self.checkpoint_every = max(1, checkpoint_every)
         self.ring: deque[Held] = deque(maxlen=max(0, catch_up))
@@ -200,7 +199,7 @@ class LocalOdometry:
             raise RuntimeError("local odometry registers only between begin() and end()")
         frame = np.asarray(points, np.float64).reshape(-1, 3)
         frame = frame[np.isfinite(frame).all(axis=1)]
-        coarse = self._coarse(frame) if self.backfill_scans and len(frame) else None
+        coarse = self._coarse(frame) if self._backfill.size and len(frame) else None
         gap = seq - self._last_seq if self._last_seq is not None else 1
         stretch = 1 < gap <= MAX_GAP
         with self._lock:

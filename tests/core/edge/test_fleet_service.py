@@ -373,7 +373,7 @@ def test_a_reattach_with_a_backfill_registers_the_outage_scans(free_port: int) -
     def fill(robot: str, seqs: range) -> tuple[np.ndarray, np.ndarray]:
         coarse = [Backfilled(i, 100.0 + i, 0, voxel_downsample(SRC.read(i).points, 0.8).astype(np.float32),
                              0.8) for i in seqs]
-        data, sizes = backfill_payload(robot, 2, sensor, coarse, 10**7)
+        data, sizes, _ = backfill_payload(robot, 2, sensor, coarse, 10**7)
         assert data is not None and sizes is not None
         return data, sizes
 
