@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from zoffload.lab.eval.detect_report import run_label
+from zoffload.lab.eval.detect_report import RUN_SETTINGS, run_label, run_settings
 from zoffload.lab.eval.detection import detection_metrics
 from zoffload.lab.runner import StartError, frames_line, run_offload
 from zoffload.runtime.config import (
@@ -62,13 +62,13 @@ class DetectExperiment:
     # Frames to the edge at the camera's size (the thesis' protocol), or "detector": shrunk to the
     # edge detector's input on the way (the daemon's default; labelled ``S@ENC+shrunk``)
     send_size: str = "camera"
-    edge_model: str = "picodet-s"
+    edge_model: str = RUN_SETTINGS["edge_model"]
     # One inference thread on the edge: robot and edge share this 2-core machine, and an edge on
     # both cores is slowed by whatever the robot runs (measured: 47 -> 71 ms per frame while the
     # robot's detector ran), which a separate edge computer would not be; one thread costs the
     # edge ~10 % (47.8 against 43.4 ms, docs/perception-log.md's detector table)
-    edge_threads: int = 1
-    local_model: str = "nanodet-m"
+    edge_threads: int = RUN_SETTINGS["edge_threads"]
+    local_model: str = RUN_SETTINGS["local_model"]
     seed: int = 0
     repeat: int = 1  # runs of this experiment: run1 ... runN under ``out`` when more than one
     extra: dict[str, Any] = field(default_factory=dict)  # further perception settings
@@ -113,6 +113,12 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
     return row
 
 
+def _settings(exp: DetectExperiment) -> dict[str, Any]:
+    """What the run ran with besides link, strategy and images (detect_report's RUN_SETTINGS)."""
+    return {"edge_model": exp.edge_model, "edge_threads": exp.edge_threads, "local_model": exp.local_model,
+            "extra": json.dumps(exp.extra, sort_keys=True, default=str)}
+
+
 def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     metrics_path = out / "vision_metrics.json"
     if not metrics_path.exists():
@@ -121,7 +127,8 @@ def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:
     label = run_label(exp.strategy, exp.encoding, exp.send_size)
     row: dict[str, Any] = {"kind": "detect", "strategy": label, "trace": exp.trace,
                            "encoding": exp.encoding, "send_size": exp.send_size, "cpu_quota": exp.cpu_quota,
-                           "images": exp.images, "max_frames": exp.max_frames, "seed": exp.seed}
+                           "images": exp.images, "max_frames": exp.max_frames, "seed": exp.seed,
+                           **_settings(exp)}
     if isinstance(source, CocoClipSource):
         row.update(detection_metrics(out, source.boxes, m["balance"]["frames_in"]))
     for k in ("processed_pct", "offloaded_pct", "robot_rtt_ms", "edge_rtt_ms", "local_infer_ms",
@@ -157,11 +164,17 @@ def complete(out: Path) -> dict[str, Any] | None:
 
 
 def run_or_reuse(exp: DetectExperiment) -> dict[str, Any]:
-    """The run's row: from its folder when it is already complete, else from running it."""
+    """The run's row: from its folder when it is already complete with this link seed, models,
+    threads and settings, else from running it (a folder of an older sweep, whose repeats all ran
+    seed 0, is run again)."""
     done = complete(Path(exp.out))
-    if done is not None:
+    same = done is not None and run_settings(done) == run_settings(_settings(exp))
+    if done is not None and same and done.get("seed", 0) == exp.seed:
         print(f"done already: {exp.out}", flush=True)
         return done
+    if done is not None:
+        print(f"{exp.out}: made with link seed {done.get('seed', 0)} and {run_settings(done)}, not "
+              f"{exp.seed} and {run_settings(_settings(exp))}: run again", flush=True)
     row = run_detect_experiment(exp)
     print(summary_line(row), flush=True)
     return row

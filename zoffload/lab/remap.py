@@ -20,7 +20,10 @@ after it: the replay registers the newest ``backfill_scans`` of each stretch of 
 includes scans kept ``local`` (the robot was detached, so an attach followed) at that grid
 (``fleet.backfill_voxel``, else the local odometry's voxel), as the edge did, or, where the
 robot's records mark them (``backfill``), exactly those (of them, only those the edge registered
-when its ``<robot>_edge.json`` lists them). ``--no-backfill`` replays the run as a
+when its ``<robot>_edge.json`` lists them), at the grid each went at where the records say
+(``backfill_voxel``: the link's room chose it since 2026-12-06), and registered at twice the
+mapper's voxel as the edge registers a backfilled scan (``BACKFILL_REGISTER_GRID``; the edge's map
+takes all of its points, the replay measures only the trajectory). ``--no-backfill`` replays the run as a
 robot without it would have gone.
 Per-point times (deskew) are left out.
 """
@@ -41,7 +44,7 @@ from zoffload.edge.export import registered_backfill
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.cloud import drop_non_finite
-from zoffload.mapping.mapper import MOTION_SPAN, motion_per_scan
+from zoffload.mapping.mapper import BACKFILL_REGISTER_GRID, MOTION_SPAN, motion_per_scan
 from zoffload.mapping.se3 import as_rigid
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol.coding import DECODERS, decode_q16d, encode_q16d, quant_step
@@ -93,8 +96,8 @@ def _backfill(rows: list[dict[str, str]], cfg: dict[str, Any], max_range: float,
     voxel = float(fleet.get("backfill_voxel")
                   or min(local_voxel_size(max_range, fleet.get("local_voxel")), 10.0))
     if rows and "backfill" in rows[0]:  # the robot marked the scans an edge took in a backfill
-        return {int(r["seq"]): (int(r["index"]), voxel, "q16d") for r in rows
-                if r.get("backfill") == "1" and r.get("status") != "acked"
+        return {int(r["seq"]): (int(r["index"]), float(r.get("backfill_voxel") or voxel), "q16d")
+                for r in rows if r.get("backfill") == "1" and r.get("status") != "acked"
                 and (registered is None or int(r["seq"]) in registered)}
     stretches: list[list[dict[str, str]]] = []
     for r in sorted(rows, key=lambda r: int(r["seq"])):
@@ -156,8 +159,10 @@ def remap(folder: Path, edge_bridges: bool = False, backfill: bool = True) -> di
         frame = source.read(index)
         if frame.gt_pose is not None:
             truth[seq] = frame.gt_pose
-        points = drop_non_finite(frame.points)[0]
-        reg = mapper.register(seq, _as_sent(points, voxel, coding, fraction))
+        points = _as_sent(drop_non_finite(frame.points)[0], voxel, coding, fraction)
+        if seq in filled and len(points):  # registered at the edge's grid for a backfilled scan
+            points = voxel_downsample(points, BACKFILL_REGISTER_GRID * mapper.voxel_size)
+        reg = mapper.register(seq, points)
         last = seq
         if reg.gap_motion:
             kept[reg.gap_motion] = kept.get(reg.gap_motion, 0) + 1

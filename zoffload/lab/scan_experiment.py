@@ -158,7 +158,9 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int 
                reference: str, balance: dict[str, int] | None, period: float = 0.1,
                cpu: dict[str, Any] | None = None, registered: set[int] | None = None) -> dict[str, Any]:
     sent = [r for r in recs if r.get("bytes") not in (None, "")]
-    received = [r for r in recs if r.get("status") in ("acked", "edge_dropped", "edge_error", "late")]
+    # the edge got them: answered in time (acked, or dropped or failed there), or late but not refused
+    received = [r for r in recs if r.get("status") in ("acked", "edge_dropped", "edge_error")
+                or (r.get("status") == "late" and r.get("late_status") != "refused")]
     t = np.array([float(r["interarrival"]) for r in received if r.get("interarrival") not in (None, "")
                   and np.isfinite(float(r["interarrival"]))])
     produced = (balance or {}).get("produced", len(recs))
@@ -315,6 +317,8 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     row["cut_short"] = run.cut_short
     row["link_seed"] = link_seed
     row.update(backfilled)
+    if "backfill_unknown" in backfilled:  # which backfilled scans the edge registered: unknown
+        row["delivered_skipped_or_backfilled"] = None
     return row
 
 
@@ -322,13 +326,15 @@ def _backfilled(path: Path) -> tuple[dict[str, Any], set[int] | None]:
     """``scans_backfilled``: the edge's counter of the outage scans it registered from an attach's
     backfill (late: robot/odometry.py; some were also booked skipped, a stall, or lost on the way,
     so it is not added to "delivered or skipped"), and the seqs it registered (its
-    ``backfilled_seqs``; None when it does not say). An edge that wrote nothing registered none."""
+    ``backfilled_seqs``; None when it does not say). An edge that wrote nothing readable leaves
+    both unknown: ``scans_backfilled`` None and ``backfill_unknown`` says why (the run's
+    "+ backfilled" is then None, not the lower bound of no scan backfilled)."""
     try:
         summary = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}, set()
+    except (OSError, ValueError) as exc:
+        return {"scans_backfilled": None, "backfill_unknown": f"{path.name}: {exc}"[:200]}, None
     if not isinstance(summary, dict):
-        return {}, set()
+        return {"scans_backfilled": None, "backfill_unknown": f"{path.name}: not a JSON object"}, None
     registered = registered_backfill(summary)
     try:
         return {"scans_backfilled": int(summary.get("backfilled", 0))}, registered

@@ -36,7 +36,7 @@ import numpy as np
 
 from zoffload.mapping.checkpoint import config_matches, seed
 from zoffload.mapping.se3 import as_rigid, se3_power
-from zoffload.mapping.voxel import KEY_BITS, KEY_OFFSET, MAX_INDEX
+from zoffload.mapping.voxel import KEY_BITS, KEY_OFFSET, MAX_INDEX, voxel_downsample
 from zoffload.mapping.voxelset import VoxelSet
 
 if TYPE_CHECKING:
@@ -86,6 +86,14 @@ BACKFILL_GAP = 3
 # The seqs of backfilled scans a mapper remembers (``backfilled_seqs``, written with the edge's
 # counters: which of a robot's outage scans its trajectory registered, not just how many)
 BACKFILL_SEQS_KEPT = 100_000
+# A backfilled scan is registered at this many times the mapper's voxel (the robot's odometry's
+# voxel, with KISS-ICP's defaults on both sides: as backfills were registered before they came
+# finer) and mapped with all its points: a robot sends a backfill finer where its link has room.
+# Registered as sent, the simulator's 0.2 m scans held the robot's worker twice as long (35 scans
+# in 1.0 s against 0.5; its next scans queued, dropped) and the `deadzone` runs' trajectories came
+# out worse (0.319-0.344 m against 0.273-0.321), though 50 consecutive scans register closer to
+# the ground truth from a finer grid (benchmarks/bench_backfill.py; 2026-12-06)
+BACKFILL_REGISTER_GRID = 2.0
 
 
 Guesses = list[tuple[str, np.ndarray]]
@@ -233,9 +241,11 @@ class RobotMapper:
         self.backfill_unused = 0  # backfilled scans not registered (no earlier state, or too old)
         self.backfill_posed = 0  # backfills whose first scan was predicted from their own poses (v10)
 
-    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
+    def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None,
+                 map_points: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
-        mapper was made with ``deskew`` (see ``deskew_times``)."""
+        mapper was made with ``deskew`` (see ``deskew_times``); ``map_points`` (the scan's frame,
+        no per-point times): what the global map grows by instead of ``points``."""
         t0 = time.perf_counter()
         frame = np.asarray(points, dtype=np.float64)
         stamps = deskew_times(times, len(frame)) if self.deskew else np.empty(0)
@@ -271,7 +281,7 @@ class RobotMapper:
             if yaw <= TURN_RATE_MAX:
                 self.turn_rate = max(self.turn_rate, yaw)
         # Grow the global map with the scan in world coordinates
-        self.global_map.add(frame, pose)
+        self.global_map.add(frame if map_points is None else np.asarray(map_points, np.float64), pose)
         self.seqs.append(int(seq))
         self.poses.append(pose)
         self.last_seq = int(seq)
@@ -505,7 +515,9 @@ class RobotMapper:
                 pose = np.asarray(self.odometry.last_pose, np.float64) @ rel
                 self.predict_from(seq, seq, pose, as_rigid(se3_power(rel, 1.0 / (seq - prev))))
             try:
-                self.register(seq, points)
+                grid = BACKFILL_REGISTER_GRID * self.voxel_size
+                self.register(seq, voxel_downsample(points, grid) if len(points) else points,
+                              map_points=points)
             except Exception as exc:  # a scan KISS-ICP cannot take: the backfill ends before it
                 log.warning("backfill scan %d not registered (%s): the %d after it left", seq,
                             str(exc)[:200], len(newer) - done - 1)

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.protocol.coding import CodingError, encode_q16d, quant_step
 from zoffload.protocol.intake import answer_from
@@ -47,7 +48,12 @@ log = logging.getLogger("zoffload.robot.fleet")
 DRAIN_WAIT = 1.0  # seconds a robot waits for its draining edge's final checkpoint before moving
 STATUS_WAIT = 2.0  # seconds a new edge may take to send its status before the robot asks it anyway
 OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
-BACKFILL_BYTES = 131_072  # an attach's backfill at most (RobotFleetSettings.backfill_bytes)
+BACKFILL_BYTES = 131_072  # an attach's backfill at least may take (RobotFleetSettings.backfill_bytes)
+BACKFILL_BYTES_MAX = 1_048_576  # ... and at most, on a link seen to carry it (backfill_bytes_max)
+# points of a backfill at most: an edge refuses a backfill of more than its max_points (500k by
+# default) together
+BACKFILL_POINTS = 400_000
+BACKFILL_SHARE = 0.5  # of the attach's timeout the backfill may take at the rate the link was seen at
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
 # A silent edge with no other edge to go to is kept (the local odometry bridges) for up to this many
@@ -342,27 +348,68 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
                        backfill=data, backfill_sizes=sizes, backfill_poses=bposes)
 
 
+def backfill_grids(voxel: float, coarsest: float | None) -> list[float]:
+    """The grids an attach tries a backfill at, finest first: ``voxel``, doubled while below
+    ``coarsest``, and ``coarsest``."""
+    top = max(voxel, coarsest or voxel)
+    grids = [voxel]
+    while grids[-1] * 2 < top:
+        grids.append(grids[-1] * 2)
+    if grids[-1] < top:
+        grids.append(top)
+    return grids
+
+
+def backfill_budget(carried: float, floor: int, cap: int, attach_timeout: float) -> int:
+    """The bytes an attach's backfill may take: what the link was seen to carry (``carried``,
+    bytes a second, a lower bound: ``ScanLedger.carried_rate``) in ``BACKFILL_SHARE`` of the
+    attach's timeout, at least ``floor`` and at most ``cap`` (a floor of 0: no backfill)."""
+    if floor <= 0:
+        return 0
+    fit = carried * attach_timeout * BACKFILL_SHARE if math.isfinite(carried) and carried > 0 else 0.0
+    return int(min(max(cap, floor), max(floor, fit)))
+
+
 def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[Backfilled],
                      budget: int = BACKFILL_BYTES) -> tuple[np.ndarray | None, np.ndarray | None, list[int]]:
     """The attach's backfill: each scan a q16d ``Scan`` (a tenth of its grid for a step,
-    Zstandard level 1), concatenated, their sizes, and the indices of the scans kept: thinned
-    evenly from the first scan (the last too where two fit) to at most ``budget`` bytes (an attach
-    is one query, answered within ``attach_timeout``: 128 kB take half a second at 2 Mbps).
-    (None, None, []) when nothing fits."""
-    coded: list[bytes] = []
-    for b in backfill:
-        origin, step, packed = encode_q16d(b.points, quant_step(b.voxel), level=1, widen=True)
-        coded.append(wire.encode(wire.Scan(
-            robot=robot, seq=b.seq, send_stamp=time.monotonic(), capture_stamp=b.stamp, voxel=b.voxel,
-            voxel_max=max(sensor.voxel_max, b.voxel), max_range=sensor.max_range, n_raw=b.n_raw,
-            points=np.zeros((0, 3), np.float32), coding="q16d", quant_step=step, n_points=len(b.points),
-            origin=origin, packed=np.frombuffer(packed, np.uint8), epoch=epoch)))
-    sizes = np.array([len(c) for c in coded], np.int64)
-    for m in range(len(coded), 0, -1):
-        keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
-        if int(sizes[keep].sum()) <= budget:
-            return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep], keep.tolist()
+    Zstandard level 1), concatenated, their sizes, and the indices of the scans kept. All of them
+    at the finest grid of ``backfill_grids`` where they fit in ``budget`` bytes and
+    ``BACKFILL_POINTS`` points (the scan's ``voxel`` says which); at the coarsest, thinned evenly
+    from the first scan (the last too where two fit) to fit both (an attach is one query, answered
+    within ``attach_timeout``: 128 kB take half a second at 2 Mbps). (None, None, []) when nothing
+    fits."""
+    if not backfill:
+        return None, None, []
+    grids = backfill_grids(max(b.voxel for b in backfill), max(b.coarsest or b.voxel for b in backfill))
+    for grid in grids:
+        clouds = [b.points if grid <= b.voxel else voxel_downsample(b.points, grid).astype(np.float32)
+                  for b in backfill]
+        if grid < grids[-1] and sum(len(c) for c in clouds) > BACKFILL_POINTS:
+            continue
+        coded = [_backfill_scan(robot, epoch, sensor, b, c, grid)
+                 for b, c in zip(backfill, clouds, strict=True)]
+        sizes = np.array([len(c) for c in coded], np.int64)
+        if grid < grids[-1] and int(sizes.sum()) > budget:
+            continue  # a coarser grid first, then fewer scans
+        points = np.array([len(c) for c in clouds], np.int64)
+        for m in range(len(coded), 0, -1):
+            keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
+            if int(sizes[keep].sum()) <= budget and int(points[keep].sum()) <= BACKFILL_POINTS:
+                return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep], keep.tolist()
     return None, None, []
+
+
+def _backfill_scan(robot: str, epoch: int, sensor: Sensor, b: Backfilled, points: np.ndarray,
+                   grid: float) -> bytes:
+    """One backfilled scan, its ``points`` at ``grid``, coded."""
+    voxel = max(grid, b.voxel)
+    origin, step, packed = encode_q16d(points, quant_step(voxel), level=1, widen=True)
+    return wire.encode(wire.Scan(
+        robot=robot, seq=b.seq, send_stamp=time.monotonic(), capture_stamp=b.stamp, voxel=voxel,
+        voxel_max=max(sensor.voxel_max, voxel), max_range=sensor.max_range, n_raw=b.n_raw,
+        points=np.zeros((0, 3), np.float32), coding="q16d", quant_step=step, n_points=len(points),
+        origin=origin, packed=np.frombuffer(packed, np.uint8), epoch=epoch))
 
 
 class FleetLink:
@@ -371,12 +418,16 @@ class FleetLink:
     def __init__(self, keys: Keys, state: FleetState, sensor: Sensor, attach_timeout: float,
                  snapshot: Callable[[], Snapshot | None] | None = None,
                  backfill_bytes: int = BACKFILL_BYTES,
-                 on_backfill: Callable[[list[int]], None] | None = None) -> None:
+                 on_backfill: Callable[[list[tuple[int, float]]], None] | None = None,
+                 backfill_budget: Callable[[], int] | None = None) -> None:
         self.keys = keys
-        self.backfill_bytes = backfill_bytes
-        self.on_backfill = on_backfill  # told the seqs of a backfill an edge accepted with its attach
+        self.backfill_bytes = backfill_bytes  # the backfill's floor (and its size when no budget)
+        self.backfill_budget = backfill_budget  # bytes the next backfill may take (``backfill_budget``)
+        self.on_backfill = on_backfill  # told (seq, grid) of a backfill an edge accepted with its attach
         self._attached_to: str | None = None  # the edge of the last attach accepted
-        self._backfill_unanswered = False  # an attach with a backfill got no answer since the last accepted
+        # since the last accepted attach, attaches with a backfill that got no answer: after one
+        # larger than the floor the next carries one of the floor's size, after one at it none
+        self._backfill_unanswered: int | None = None  # the bytes of the newest (None: none)
         self.state = state
         self.robot = state.robot
         self.sensor = sensor
@@ -469,18 +520,30 @@ class FleetLink:
                     log.error("attach to %s failed: %s", ask[0], exc)
                     self.state.attach_result(ask[0], ask[1], None, time.monotonic())
 
+    def _backfill_bytes(self) -> int:
+        """What the next attach's backfill may take (0: none; see ``_backfill_unanswered``)."""
+        budget = self.backfill_budget() if self.backfill_budget is not None else self.backfill_bytes
+        if self._backfill_unanswered is None:
+            return budget
+        return min(budget, self.backfill_bytes) if self._backfill_unanswered > self.backfill_bytes else 0
+
     def _attach(self, edge: str, epoch: int) -> None:
         assert self._session is not None
         snapshot = self.snapshot()
         cp, seqs, poses = self.state.attach_payload(snapshot)
         # The backfill only back to the edge the robot was last attached to (another has no state
-        # before it to register it from), and not again after an attach with one went unanswered
-        # (its bytes may be what a slow link could not carry within attach_timeout)
+        # before it to register it from); after an attach with one went unanswered (its bytes may
+        # be what a slow link could not carry within attach_timeout) at the floor's size, then none
+        budget = self._backfill_bytes()
         backfill = (snapshot.backfill if snapshot is not None and edge == self._attached_to
-                    and not self._backfill_unanswered else ())
+                    and budget > 0 else ())
+        if backfill and budget > self.backfill_bytes:  # the link's share less the rest of the attach
+            rest = len(wire.encode(attach_message(self.robot, epoch, self.sensor, cp, seqs, poses,
+                                                  self.state.reads(edge))))
+            budget = max(self.backfill_bytes, budget - rest)
         try:
             msg = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, self.state.reads(edge),
-                                 backfill, self.backfill_bytes)
+                                 backfill, budget)
         except (CodingError, ValueError) as exc:  # (the robot's own scans: not expected) without it
             log.warning("backfill for edge %s not coded (%s): attaching without it", edge, exc)
             msg = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, self.state.reads(edge))
@@ -501,14 +564,14 @@ class FleetLink:
                 break
         result = self.state.attach_result(edge, epoch, reply, time.monotonic())
         where = f"checkpoint {cp.edge or 'local'}:{cp.seq}" if cp is not None else "no checkpoint"
-        if msg.backfill_sizes is not None and reply is None:
-            self._backfill_unanswered = True  # until an attach is accepted
+        if msg.backfill is not None and reply is None:
+            self._backfill_unanswered = len(msg.backfill)  # until an attach is accepted
         if result == "attached":
-            self._attached_to, self._backfill_unanswered = edge, False
+            self._attached_to, self._backfill_unanswered = edge, None
             if msg.backfill_sizes is not None:
                 self.state.count("backfill_accepted", len(msg.backfill_sizes))
                 if self.on_backfill is not None:
-                    self.on_backfill([scan.seq for scan in msg.backfill_scans()])
+                    self.on_backfill([(scan.seq, scan.voxel) for scan in msg.backfill_scans()])
             log.info("attached to edge %s (epoch %d, %s, %d local poses, %d backfilled scans)", edge, epoch,
                      where, len(seqs), len(msg.backfill_sizes) if msg.backfill_sizes is not None else 0)
         elif result == "refused" and reply is not None:

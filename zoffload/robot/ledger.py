@@ -181,10 +181,16 @@ class ScanLedger:
             if rec.pop("overtaken", False):
                 self.counters["lost_overtaken"] -= 1
             self.counters["late"] += 1
-            rec["status"] = "late"
+            rec["status"], rec["late_status"] = "late", ack.status  # what the edge said, late
             return "late"
         self.counters["duplicate_acks"] += 1
         return "duplicate"
+
+    def carried_rate(self) -> float:
+        """A lower bound of the link's rate, bytes a second: the most bytes a recently acked scan
+        carried per second of its network time (its round trip less the edge's queue and
+        registration: the way there and the ack's way back); 0 before any."""
+        return max((a.bytes / a.net for a in self.recent if a.net > 0), default=0.0)
 
     def acked_bytes_per_s(self, now: float) -> float:
         """Bytes of the scans acked in the last second; NaN until acks span a full second (two

@@ -32,6 +32,11 @@ MAX_GAP = 50  # beyond this many scans without a pose, constant velocity means n
 MAX_LOCAL_POSES = 10_000  # poses kept for the next attach (16 minutes at 10 Hz)
 
 
+# The backfill's grid against the local odometry's voxel: the simulator's VLP-16 at 0.2 m is 4.9k
+# points, 12 kB coded a scan (0.8 m: 0.96k, 2.1 kB); KITTI-360's HDL-64 at 0.5 m 6k, 14 kB
+BACKFILL_FINER = 0.25
+
+
 def local_voxel_size(max_range: float, configured: float | None = None) -> float:
     return configured if configured is not None else max_range / 50.0
 
@@ -47,8 +52,9 @@ class Held:
 
 @dataclass(frozen=True)
 class Backfilled:
-    """A scan the local odometry registered, kept at a coarse grid for the next attach (its
-    backfill: the edge that mapped the robot registers it, mapping/mapper.py ``continue_from``)."""
+    """A scan the local odometry registered, kept at a grid for the next attach (its backfill:
+    the edge that mapped the robot registers it, mapping/mapper.py ``continue_from``). The attach
+    sends it at ``voxel`` when the link has room, coarser (up to ``coarsest``) when it has less."""
 
     seq: int
     stamp: float  # capture stamp (robot wall clock)
@@ -56,6 +62,7 @@ class Backfilled:
     points: np.ndarray  # float32 (m, 3): the centroids of the ``voxel`` grid
     voxel: float
     pose: np.ndarray | None = None  # the local odometry's pose of it (4x4; version 10 sends it)
+    coarsest: float | None = None  # the coarsest grid an attach may send it at (None: ``voxel``)
 
 
 @dataclass(frozen=True)
@@ -65,7 +72,7 @@ class Snapshot:
     checkpoint: wire.Checkpoint | None
     seqs: np.ndarray  # int64 (n,)
     poses: np.ndarray  # float64 (n, 4, 4)
-    backfill: tuple[Backfilled, ...] = ()  # the period's scans at a coarse grid, spread over it, ascending
+    backfill: tuple[Backfilled, ...] = ()  # the period's scans, spread over it, ascending
 
 
 class BackfillRing:
@@ -108,9 +115,12 @@ class LocalOdometry:
         self.robot = robot
         self.max_range = max_range
         self.voxel = local_voxel_size(max_range, voxel)
-        # The period's registered scans at a coarse grid, spread over it (the next attach's
-        # backfill; a scan's voxel is at most 10 m)
-        self.backfill_voxel = backfill_voxel if backfill_voxel is not None else min(self.voxel, 10.0)
+        # The period's registered scans, spread over it (the next attach's backfill), kept at a
+        # quarter of the odometry's voxel: sent so where the link has room (the edge's map of the
+        # outage), coarser where it has less, down to the odometry's voxel (a grid at most 10 m)
+        self.backfill_voxel = (backfill_voxel if backfill_voxel is not None
+                               else min(self.voxel * BACKFILL_FINER, 10.0))
+        self.backfill_coarsest = max(min(self.voxel, 10.0), self.backfill_voxel)
         self._backfill = BackfillRing(backfill_scans)
         self.threads = threads
         self.checkpoint_every = max(1, checkpoint_every)
@@ -199,7 +209,7 @@ class LocalOdometry:
             raise RuntimeError("local odometry registers only between begin() and end()")
         frame = np.asarray(points, np.float64).reshape(-1, 3)
         frame = frame[np.isfinite(frame).all(axis=1)]
-        coarse = self._coarse(frame) if self._backfill.size and len(frame) else None
+        gridded = self._gridded(frame) if self._backfill.size and len(frame) else None
         gap = seq - self._last_seq if self._last_seq is not None else 1
         stretch = 1 < gap <= MAX_GAP
         with self._lock:
@@ -212,8 +222,9 @@ class LocalOdometry:
             self.motion = np.array(odo.last_delta, np.float64)  # type: ignore[attr-defined]
             self._last_seq = seq
             self._poses.append((seq, pose))
-            if coarse is not None and len(coarse):
-                self._backfill.add(Backfilled(seq, stamp, len(frame), coarse, self.backfill_voxel, pose))
+            if gridded is not None and len(gridded):
+                self._backfill.add(Backfilled(seq, stamp, len(frame), gridded, self.backfill_voxel, pose,
+                                              self.backfill_coarsest))
             self._since_checkpoint += 1
             # A period's first registration takes one at once (the previous one is of another period)
             if self._since_checkpoint >= self.checkpoint_every or not self._period_checkpointed:
@@ -225,8 +236,8 @@ class LocalOdometry:
         self.cpu.add(cpu)
         return pose, cpu
 
-    def _coarse(self, frame: np.ndarray) -> np.ndarray | None:
-        """The scan at the backfill's grid; None (not kept) for points the grid cannot hold."""
+    def _gridded(self, frame: np.ndarray) -> np.ndarray | None:
+        """The scan at the backfill's (finest) grid; None (not kept) for points the grid cannot hold."""
         try:
             return voxel_downsample(frame, self.backfill_voxel).astype(np.float32)
         except ValueError:  # coordinates too far from the origin for the grid's keys

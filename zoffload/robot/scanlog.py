@@ -24,7 +24,8 @@ RECORD_FIELDS = (
     "seq", "index", "capture_stamp", "voxel", "n_raw", "n_nonfinite", "n_sent", "bytes", "coding",
     "compressed", "skipped", "reason", "work_ms", "cpu_ms", "cpu_loop_ms", "cpu_send_ms", "send_stamp",
     "status", "rtt", "network_time", "interarrival", "queue_time", "proc_time", "map_points",
-    "keypoints", "sigma", "pose_source", "edge", "cpu_local_ms", "pose_lag_ms", "backfill",
+    "keypoints", "sigma", "pose_source", "edge", "cpu_local_ms", "pose_lag_ms", "backfill", "backfill_voxel",
+    "late_status",
 )
 MAX_JUMPS = 10_000  # switch jumps kept
 JUMP_SPAN = 10  # a switch further than this many scans from the poses before it measures nothing

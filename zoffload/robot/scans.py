@@ -42,7 +42,15 @@ from zoffload.policy.scale import ScalePolicy
 from zoffload.protocol import coding, wire
 from zoffload.protocol.intake import answer_from
 from zoffload.protocol.keys import Keys
-from zoffload.robot.fleet import STATUS_WAIT, FleetLink, FleetState, Sensor
+from zoffload.robot.fleet import (
+    BACKFILL_BYTES,
+    BACKFILL_BYTES_MAX,
+    STATUS_WAIT,
+    FleetLink,
+    FleetState,
+    Sensor,
+    backfill_budget,
+)
 from zoffload.robot.ledger import ScanLedger
 from zoffload.robot.localpose import PoseKeeper
 from zoffload.robot.odometry import LocalOdometry
@@ -91,9 +99,10 @@ class StreamOptions:
     local_voxel: float | None = None
     local_threads: int = 1
     catch_up: int = 10
-    backfill_scans: int = 50  # scans kept at a coarse grid for the next attach (robot/odometry.py)
-    backfill_voxel: float | None = None  # None: the local odometry's voxel
-    backfill_bytes: int = 131_072
+    backfill_scans: int = 50  # scans kept for the next attach (robot/odometry.py)
+    backfill_voxel: float | None = None  # None: a quarter of the local odometry's voxel
+    backfill_bytes: int = BACKFILL_BYTES  # an attach's backfill may take at least ...
+    backfill_bytes_max: int = BACKFILL_BYTES_MAX  # ... and at most (robot/fleet.py backfill_budget)
     bridge_after: float | None = None  # None: automatic (robot/localpose.py)
 
 
@@ -173,19 +182,28 @@ class ScanStreamer:
             self.fleet = FleetLink(self.keys, self.fleet_state,
                                    Sensor(self.source.max_range, self.opts.voxel_range[1], self.opts.rate_hz),
                                    self.opts.attach_timeout, self.poses.handover, self.opts.backfill_bytes,
-                                   self._backfilled)
+                                   self._backfilled, self._backfill_budget)
             self.fleet.start(session, presence)
         log.info("scans from %s (%d), policy %s, coding %s", self.source.name, len(self.source),
                  self.policy.name, self.opts.coding)
 
-    def _backfilled(self, seqs: list[int]) -> None:
-        """Scans an edge took in an attach's backfill (the fleet thread): marked in their records
-        (``backfill``), their bucket unchanged."""
+    def _backfilled(self, scans: list[tuple[int, float]]) -> None:
+        """Scans an edge took in an attach's backfill, (seq, grid) (the fleet thread): marked in
+        their records (``backfill``, and the grid it went at: ``backfill_voxel``), their bucket
+        unchanged."""
         with self._lock:
-            for seq in seqs:
+            for seq, grid in scans:
                 rec = self.ledger.records.get(seq)
                 if rec is not None:
-                    rec["backfill"] = 1
+                    rec["backfill"], rec["backfill_voxel"] = 1, grid
+
+    def _backfill_budget(self) -> int:
+        """The bytes the next attach's backfill may take (the fleet thread): what the link was seen
+        to carry, within the settings' floor and cap."""
+        with self._lock:
+            carried = self.ledger.carried_rate()
+        o = self.opts
+        return backfill_budget(carried, o.backfill_bytes, o.backfill_bytes_max, o.attach_timeout)
 
     def close(self) -> None:
         if self.fleet is not None:
@@ -678,5 +696,5 @@ def scan_streamer(settings: RobotSettings, stop: StopSignal, source: ScanSource 
         attach=f.attach, attach_timeout=f.attach_timeout, failover_after=f.failover_after,
         local_odometry=f.local_odometry, local_voxel=f.local_voxel, local_threads=f.local_threads,
         catch_up=f.catch_up, backfill_scans=f.backfill_scans, backfill_voxel=f.backfill_voxel,
-        backfill_bytes=f.backfill_bytes, bridge_after=f.bridge_after)
+        backfill_bytes=f.backfill_bytes, backfill_bytes_max=f.backfill_bytes_max, bridge_after=f.bridge_after)
     return ScanStreamer(source, policy, Keys(settings.namespace), options, stop)

@@ -415,20 +415,30 @@ class RobotFleetSettings(_Strict):
     )
     backfill_scans: int = Field(
         default=50, ge=0, le=64,
-        description="scans the robot registered itself while no edge mapped it that it keeps, at a coarse "
-                    "grid, with their poses, for the next attach to hand over (0: none; when full, every "
-                    "other one is dropped but the outage's first and the newest, so they span the whole "
-                    "outage): the edge that mapped it registers them instead of jumping the outage (codec "
-                    "versions 9 and 10)",
+        description="scans the robot registered itself while no edge mapped it that it keeps, at "
+                    "backfill_voxel, with their poses, for the next attach to hand over (0: none; when "
+                    "full, every other one is dropped but the outage's first and the newest, so they "
+                    "span the whole outage): the edge that mapped it registers them instead of jumping the "
+                    "outage (codec versions 9 and 10)",
     )
     backfill_voxel: float | None = Field(
         default=None, gt=0, le=10,
-        description="the grid of those scans, in m (default: the local odometry's voxel, at most 10)",
+        description="the grid those scans are kept and sent at where the link has room, in m (default: "
+                    "a quarter of the local odometry's voxel, at most 10); where it has less, an attach "
+                    "sends them at twice the grid, and so on up to the local odometry's voxel",
     )
     backfill_bytes: int = Field(
         default=131_072, ge=0,
-        description="bytes of backfill an attach carries at most (coded scans; thinned evenly beyond; "
-                    "an attach that goes unanswered with one is sent again without it)",
+        description="bytes of backfill an attach may carry on any link (coded scans; at the odometry's "
+                    "voxel thinned evenly beyond; an attach that goes unanswered with a larger one is "
+                    "sent again with one of this size, one that goes unanswered with this size without; "
+                    "0: no backfill)",
+    )
+    backfill_bytes_max: int = Field(
+        default=1_048_576, ge=0,
+        description="bytes of backfill an attach may carry on a link seen to carry them, with the rest "
+                    "of the attach, in half the attach_timeout (the most bytes an acked scan carried per "
+                    "second of its round trip less the edge's queue and registration)",
     )
     bridge_after: float | None = Field(
         default=None, gt=0,

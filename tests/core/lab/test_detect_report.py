@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 
-from zoffload.lab.eval.detect_report import aggregate, targets, write_detect_report
+from zoffload.lab.eval.detect_report import aggregate, table, targets, write_detect_report
 
 
 def _run(folder: Path, strategy: str, ap: float, trace: str = "detect-capped", quota: float = 0.25) -> Path:
@@ -75,3 +76,47 @@ def test_ours_choosing_the_encoding_per_frame_meets_the_best_fixed_of_either_enc
     summary = targets(aggregate([json.loads((f / "results.json").read_text()) for f in folders]))
     assert ("(encoding per frame, against raw and JPEG ones) | 0.25 core | 58.0 | ratio 0.9 + JPEG: 59.0 "
             "| 50.0 | -1.0 | +8.0 |") in summary
+
+
+def test_runs_with_another_edge_model_or_threads_are_another_row(tmp_path: Path) -> None:
+    """The models, the edge's threads and further settings are part of what a run measured:
+    runs that differ in them are not averaged into one row, and the tables name them; runs older
+    than the fields ran the defaults."""
+    runs = []
+    for i, (model, threads) in enumerate([("picodet-s", 1), ("picodet-s", 1), ("picodet-s", 2),
+                                          ("yolox-nano", 1)]):
+        f = _run(tmp_path / f"run{i}", "edge", 50.0 + i)
+        row = dict(json.loads((f / "results.json").read_text()), edge_model=model, edge_threads=threads,
+                   local_model="nanodet-m", extra="{}")
+        runs.append(row)
+    runs.append(json.loads((_run(tmp_path / "old", "edge", 42.0) / "results.json").read_text()))
+    rows = aggregate(runs)
+    assert sorted(r["n"] for r in rows) == [1, 1, 3]
+    assert [r["ap50_async"] for r in rows if r["n"] == 3] == [pytest.approx((50 + 51 + 42) / 3)]
+    text = table(rows, "detect-capped", "0.25 core")
+    assert "| Edge only (edge_threads 2) | 1 |" in text
+    assert "| Edge only (edge_model yolox-nano) | 1 |" in text
+    ours = dict(runs[0], strategy="dispatch", ap50_async=60.0, edge_model="yolox-nano")
+    summary = targets(aggregate([*runs, ours]))
+    assert "(edge_model yolox-nano)" in summary and "| +7.0 |" in summary  # against its own model's edge (53)
+
+
+def test_a_resumed_sweep_runs_again_a_folder_made_with_another_link_seed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Repeat i runs with link seed + i - 1; a complete folder of an older sweep (seed 0 in every
+    repeat) is run again, one with the planned seed is reused."""
+    import zoffload.lab.detect_experiment as de
+
+    ran: list[int] = []
+    monkeypatch.setattr(de, "run_detect_experiment", lambda exp: ran.append(exp.seed) or {"strategy": "edge"})
+    monkeypatch.setattr(de, "summary_line", lambda row: "")
+    plan = de.sweep_runs(tmp_path, ["detect-capped"], ["edge"], [0.25], 2)
+    assert [e.seed for e in plan] == [0, 1]
+    for exp in plan:
+        _run(Path(exp.out), "edge", 50.0)  # complete, made by an older sweep: no seed (0)
+    assert de.run_or_reuse(plan[0])["ap50_async"] == 50.0 and ran == []
+    de.run_or_reuse(plan[1])
+    assert ran == [1]
+    other = dataclasses.replace(plan[0], edge_model="yolox-nano")  # the same folder, another model
+    de.run_or_reuse(other)
+    assert ran == [1, 0]

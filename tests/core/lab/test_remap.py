@@ -115,12 +115,15 @@ def test_a_backfill_the_robot_kept_is_registered_as_its_edge_did(tmp_path: Path,
 
 
 def test_the_replayed_backfill_is_what_the_edge_registered_when_it_says() -> None:
-    """The robot marks the scans of a backfill an edge accepted; the edge lists those it
-    registered (``backfilled_seqs``): the replay takes the marked ones it lists."""
+    """The robot marks the scans of a backfill an edge accepted, and the grid each went at; the
+    edge lists those it registered (``backfilled_seqs``): the replay takes the marked ones it
+    lists, at their grid (the settings' where a record does not say)."""
     from zoffload.lab.remap import _backfill
 
     rows = [{"seq": str(i), "index": str(i), "status": "local", "pose_source": "local",
-             "backfill": "1" if 20 <= i < 28 else ""} for i in range(30)]
+             "backfill": "1" if 20 <= i < 28 else "", "backfill_voxel": "0.2" if 20 <= i < 24 else ""}
+            for i in range(30)]
     cfg = {"fleet": {"attach": True, "backfill_scans": 50, "backfill_voxel": 0.8}}
     assert sorted(_backfill(rows, cfg, 40.0)) == list(range(20, 28))
     assert sorted(_backfill(rows, cfg, 40.0, {22, 23, 29})) == [22, 23]
+    assert [v for _, v, _ in _backfill(rows, cfg, 40.0).values()] == [0.2] * 4 + [0.8] * 4

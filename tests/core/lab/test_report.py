@@ -119,20 +119,25 @@ def test_scans_an_edge_took_in_a_backfill_are_counted_once() -> None:
 
 
 def test_the_edges_word_on_its_backfill_is_read_from_its_counters(tmp_path: Path) -> None:
-    """The experiment reads the registered backfill from the edge's ``<robot>_edge.json``: no
-    file, registered none; an edge that does not list them, unknown (the robot's marks count)."""
+    """The experiment reads the registered backfill from the edge's ``<robot>_edge.json``: an
+    edge that does not list them, the robot's marks count; no file or an unreadable one, unknown
+    (said why; the run's "+ backfilled" left out, not counted as none)."""
     import json
 
     from zoffload.lab.scan_experiment import _backfilled
 
     path = tmp_path / "r1_edge.json"
-    assert _backfilled(path) == ({}, set())
+    figures, registered = _backfilled(path)
+    assert figures["scans_backfilled"] is None and "r1_edge.json" in figures["backfill_unknown"]
+    assert registered is None
     path.write_text(json.dumps({"backfilled": 3, "backfilled_seqs": [7, 8, 9]}))
     assert _backfilled(path) == ({"scans_backfilled": 3}, {7, 8, 9})
     path.write_text(json.dumps({"backfilled": 3}))
     assert _backfilled(path) == ({"scans_backfilled": 3}, None)
-    path.write_text("[1, 2")
-    assert _backfilled(path) == ({}, set())
+    for bad in ("[1, 2", "[1, 2]"):
+        path.write_text(bad)
+        figures, registered = _backfilled(path)
+        assert figures["scans_backfilled"] is None and figures["backfill_unknown"] and registered is None
 
 
 def test_trajectory_against_local_is_taken_over_the_same_scans(tmp_path: Path) -> None:
@@ -169,3 +174,32 @@ def test_trajectory_against_local_is_taken_over_the_same_scans(tmp_path: Path) -
     # no ground truth (KITTI-360's reference is KISS-ICP itself): no figure
     kitti = dict(rows[1], trajectory_reference="KISS-ICP run locally on every raw scan")
     assert same_scans_vs_local(kitti, rows[0]) is None
+
+
+def test_a_late_refusal_is_booked_late_and_not_counted_as_received() -> None:
+    """A late ack keeps what the edge said (``late_status``): the experiment counts a late scan as
+    received by the edge unless the edge refused it."""
+    import numpy as np
+
+    from zoffload.lab.scan_experiment import ScanExperiment, _table_row
+    from zoffload.protocol import wire
+    from zoffload.robot.ledger import ScanLedger
+
+    def ack(seq: int, stamp: float, status: str = "ok") -> wire.ScanAck:
+        return wire.ScanAck(robot="r", seq=seq, send_stamp=stamp, status=status, interarrival=0.1,
+                            queue_time=0.001, proc_time=0.02, icp_time=0.015, map_points=10, keypoints=5,
+                            sigma=0.3, pose=np.eye(4))
+
+    led = ScanLedger()
+    for seq in range(3):
+        led.produced()
+        led.published(seq, 100.0 + seq, {"bytes": 100, "n_raw": 1000})
+    assert led.expire(now=110.0, timeout=1.0) == 3
+    assert led.on_ack(ack(0, 100.0), 110.1) == "late"
+    assert led.on_ack(ack(1, 101.0, "refused"), 110.2) == "late"
+    assert [led.records[s].get("late_status") for s in range(3)] == ["ok", "refused", None]
+    assert led.balance()["late"] == 2 and led.balanced()
+    recs = [dict(led.records[s], seq=str(s)) for s in range(3)]
+    exp = ScanExperiment(trace="ethernet", policy="fixed:0.1")
+    row = _table_row(exp, recs, None, None, "", led.balance())
+    assert row["scans_received"] == 1 and row["scans_sent"] == 3

@@ -238,6 +238,49 @@ def test_a_mapper_registers_the_robots_backfill_instead_of_jumping_the_outage() 
     assert off(filled) < 0.8 * off(jumped), (off(filled), off(jumped))
 
 
+def test_a_fine_backfill_is_registered_at_twice_the_mappers_voxel_and_mapped_whole(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot sends its backfill finer where its link has room (0.2 m here, a quarter of its
+    odometry's 0.8). The mapper registers each scan at twice its own voxel (0.8: the robot's
+    odometry grid with KISS-ICP's defaults on both sides, what registering a backfill cost before)
+    and grows its global map by all of the scan's points: the outage's map is dense, the poses
+    those of the coarse scans."""
+    start, lost, back = 40, 100, 130
+    raw = {i: SRC.read(i).points for i in range(start, back)}
+    robot = RobotMapper(voxel_size=0.8, max_range=SRC.max_range)
+    for i in range(start, back):
+        robot.register(i, raw[i])
+    own = take_checkpoint(robot.odometry, "r1", "", epoch=0, seq=back - 1, stamp=0.0)
+    seqs, poses = np.arange(lost, back), np.asarray(robot.poses[lost - start:])
+
+    def run(grid: float) -> tuple[RobotMapper, list[tuple[int, int]], list[np.ndarray], int]:
+        m = RobotMapper(voxel_size=0.4, max_range=SRC.max_range)
+        for i in range(start, lost):
+            m.register(i, voxel_downsample(raw[i], 0.1))
+        before = len(m.global_map)
+        sizes: list[tuple[int, int]] = []
+        register = m.register
+
+        def spy(seq: int, points: np.ndarray, times: np.ndarray | None = None,
+                map_points: np.ndarray | None = None) -> object:
+            sizes.append((len(points), len(points if map_points is None else map_points)))
+            return register(seq, points, times, map_points)
+
+        monkeypatch.setattr(m, "register", spy)
+        fill = [voxel_downsample(raw[i], grid) for i in range(lost, back)]
+        m.continue_from(own, seqs, poses, list(zip(range(lost, back), fill, strict=True)))
+        return m, sizes, fill, len(m.global_map) - before
+
+    fine, fine_sizes, fine_fill, fine_grew = run(0.2)
+    coarse, coarse_sizes, _, coarse_grew = run(0.8)
+    assert fine.backfilled == coarse.backfilled == back - lost
+    assert [r for r, _ in fine_sizes] == [len(voxel_downsample(p, 0.8)) for p in fine_fill]
+    assert [g for _, g in fine_sizes] == [len(p) for p in fine_fill]  # mapped whole
+    assert fine_grew > 2 * coarse_grew, (fine_grew, coarse_grew)
+    d = np.linalg.norm(fine.poses[-1][:3, 3] - coarse.poses[-1][:3, 3])
+    assert d < 0.1, d  # registered from (nearly) the same coarse scans
+
+
 def test_a_backfill_the_mapper_cannot_continue_is_left_unused() -> None:
     """A mapper that never mapped the robot (another edge) seeds from the checkpoint and leaves
     the backfill, as it does one whose first newer scan is over ``max_gap`` after its last."""
@@ -336,10 +379,11 @@ def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
 
     real = RobotMapper.register
 
-    def flaky(self: RobotMapper, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Any:
+    def flaky(self: RobotMapper, seq: int, points: np.ndarray, times: np.ndarray | None = None,
+              map_points: np.ndarray | None = None) -> Any:
         if seq == 29:
             raise RuntimeError("no points left")
-        return real(self, seq, points, times)
+        return real(self, seq, points, times, map_points)
 
     broken = edge()
     monkeypatch.setattr(RobotMapper, "register", flaky)

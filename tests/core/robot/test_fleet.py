@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from zoffload.mapping.checkpoint import take_checkpoint
+from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.robot.fleet import (
     DRAIN_WAIT,
@@ -19,8 +20,11 @@ from zoffload.robot.fleet import (
     FleetState,
     Sensor,
     attach_message,
+    backfill_budget,
+    backfill_grids,
 )
 from zoffload.robot.odometry import Backfilled, Snapshot
+from zoffload.sources.base import open_scan_source
 
 
 def checkpoint(edge: str, epoch: int, seq: int, final: bool = False, robot: str = "r1") -> wire.Checkpoint:
@@ -303,6 +307,58 @@ def test_the_backfill_goes_only_to_an_edge_that_reads_9_and_within_its_bytes() -
     assert max(np.diff(kept)) - min(np.diff(kept)) <= 1  # evenly
     none = attach_message("r1", 4, sensor, None, seqs, poses, 9, fill, each // 2)
     assert none.backfill is None and none.backfill_sizes is None
+
+
+def test_the_backfill_goes_at_the_finest_grid_its_bytes_allow(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ring keeps its scans at a quarter of the local odometry's voxel; an attach sends all of
+    them at the finest of 0.2, 0.4 and 0.8 m where their coded scans fit its bytes (a scan's
+    ``voxel`` says which, one centroid per cell of it) and thins them only at the odometry's 0.8 m.
+    The bytes: what the link was seen to carry in half the attach's timeout, within the floor and
+    the cap; the points: at most ``BACKFILL_POINTS``."""
+    assert backfill_grids(0.2, 0.8) == [0.2, 0.4, 0.8]
+    assert backfill_grids(0.3, 1.0) == [0.3, 0.6, 1.0]
+    assert backfill_grids(0.8, None) == backfill_grids(0.8, 0.5) == [0.8]
+    assert backfill_budget(0.0, 131_072, 1 << 20, 1.0) == 131_072  # nothing seen: the floor
+    assert backfill_budget(float("nan"), 131_072, 1 << 20, 1.0) == 131_072
+    assert backfill_budget(1e6, 131_072, 1 << 20, 1.0) == 500_000  # 1 MB/s for half a second
+    assert backfill_budget(1e9, 131_072, 1 << 20, 1.0) == 1 << 20  # the cap
+    assert backfill_budget(1e9, 131_072, 0, 1.0) == 131_072  # a cap below the floor: the floor
+    assert backfill_budget(1e9, 0, 1 << 20, 1.0) == 0  # a floor of 0: no backfill
+    src = open_scan_source("sim")
+    fill = [Backfilled(seq, 100.0 + seq / 10, 28_000,
+                       voxel_downsample(src.read(seq).points, 0.2).astype(np.float32), 0.2, None, 0.8)
+            for seq in range(40, 52)]
+    sensor = Sensor(40.0, 0.07, 10.0)
+    seqs, poses = np.zeros(0, np.int64), np.zeros((0, 4, 4))
+
+    def attach(budget: int) -> tuple[list[wire.Scan], int]:
+        a = wire.decode(wire.encode(attach_message("r1", 4, sensor, None, seqs, poses, 10, fill, budget)),
+                        expect=wire.Attach)
+        return a.backfill_scans(), len(a.backfill) if a.backfill is not None else 0
+
+    fine, fine_bytes = attach(10**7)
+    assert [s.seq for s in fine] == list(range(40, 52)) and {s.voxel for s in fine} == {0.2}
+    assert [s.n_points for s in fine] == [len(b.points) for b in fill]
+    mid, mid_bytes = attach(fine_bytes - 1)
+    assert [s.seq for s in mid] == list(range(40, 52)) and {s.voxel for s in mid} == {0.4}
+    assert mid_bytes < fine_bytes / 1.5
+    for s, b in zip(mid, fill, strict=True):  # one centroid per 0.4 m cell of the ring's points
+        assert s.n_points == len(voxel_downsample(b.points, 0.4)) < len(b.points) / 1.5
+    coarse, coarse_bytes = attach(mid_bytes - 1)
+    assert len(coarse) == 12 and {s.voxel for s in coarse} == {0.8} and coarse_bytes < mid_bytes
+    thin, thin_bytes = attach(coarse_bytes // 2)
+    kept = [s.seq for s in thin]
+    assert {s.voxel for s in thin} == {0.8} and kept[0] == 40 and kept[-1] == 51 and len(kept) < 12
+    assert thin_bytes <= coarse_bytes // 2
+    # and, finer than the odometry's voxel, within BACKFILL_POINTS (an edge's max_points together)
+    monkeypatch.setattr("zoffload.robot.fleet.BACKFILL_POINTS", sum(len(b.points) for b in fill) - 1)
+    capped, _ = attach(10**7)
+    assert len(capped) == 12 and {s.voxel for s in capped} == {0.4}
+    coarse_points = sum(s.n_points for s in coarse)  # and at the coarsest, thinned to them
+    monkeypatch.setattr("zoffload.robot.fleet.BACKFILL_POINTS", coarse_points // 2)
+    few, _ = attach(10**7)
+    assert {s.voxel for s in few} == {0.8} and len(few) < 12
+    assert sum(s.n_points for s in few) <= coarse_points // 2
 
 
 def test_the_robots_pose_of_each_backfilled_scan_goes_to_an_edge_that_reads_10() -> None:

@@ -32,6 +32,7 @@ def test_every_bucket_and_the_balance() -> None:
     assert led.expire(now=105.5, timeout=1.0) == 2
     assert led.records[4]["status"] == "lost"
     assert led.on_ack(ack(3, 103.0), 105.6) == "late"
+    assert led.records[3]["late_status"] == "ok"  # what the edge said, late
     assert led.on_ack(ack(0, 100.0), 105.7) == "duplicate"
     assert led.on_ack(ack(99, 1.0), 105.7) == "unknown"
     assert led.on_ack(ack(5, 999.0), 105.7) == "unknown"  # stamp does not match what was sent
@@ -82,6 +83,12 @@ def test_the_link_figures_the_policy_reads() -> None:
     assert led.acked_bytes_per_s(103.0) == 10 * 1000  # acks of the last second
     assert math.isnan(ScanLedger().acked_bytes_per_s(1.0))  # nothing acked yet: no rate
     assert led.last_ack_at == pytest.approx(102.95)
+    # the link's rate, a lower bound: the most bytes an acked scan carried per second of network time
+    assert led.carried_rate() == pytest.approx(1000 / (0.05 - 0.021))
+    assert ScanLedger().carried_rate() == 0.0
+    led.published(30, 103.0, {"bytes": 4000})
+    led.on_ack(ack(30, 103.0), 103.035)
+    assert led.carried_rate() == pytest.approx(4000 / (0.035 - 0.021))
 
 
 def test_local_scans_are_a_terminal_bucket_and_catch_up_poses_keep_their_bucket() -> None:

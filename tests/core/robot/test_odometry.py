@@ -249,14 +249,16 @@ def _attached_keeper(edge_run: tuple) -> tuple:
     return fleet, ask, ledger, lock, odo, keeper
 
 
-def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(edge_run: tuple) -> None:
+def test_the_period_keeps_its_scans_at_the_backfills_grid_for_the_next_attach(edge_run: tuple) -> None:
     """The backfill (codec version 9): every scan the local odometry registers, caught-up ones
-    included, is kept at its grid (the odometry's voxel by default) with its pose, at most
-    ``backfill_scans`` thinned over the period; the snapshot hands them to the attach and the
-    period's end forgets them."""
+    included, is kept at its grid (a quarter of the odometry's voxel by default; an attach may
+    send it up to the odometry's voxel) with its pose, at most ``backfill_scans`` thinned over the
+    period; the snapshot hands them to the attach and the period's end forgets them."""
     src, mapper, cp = edge_run
+    fixed = LocalOdometry("robot1", src.max_range, backfill_scans=8, backfill_voxel=0.8)
+    assert fixed.backfill_voxel == fixed.backfill_coarsest == 0.8  # set: sent at it or thinned
     odo = LocalOdometry("robot1", src.max_range, catch_up=4, backfill_scans=8)
-    assert odo.backfill_voxel == odo.voxel == 0.8
+    assert odo.voxel == 0.8 and odo.backfill_voxel == 0.2 and odo.backfill_coarsest == 0.8
     for i in range(30, 32):
         odo.hold(i, src.read(i).points, i / 10)
     odo.begin(cp, [(29, mapper.poses[29])])
@@ -278,8 +280,9 @@ def test_the_period_keeps_its_newest_scans_at_a_coarse_grid_for_the_next_attach(
     assert seqs[0] == 30 and seqs[-1] == 59 and len(seqs) <= 8 and seqs == sorted(seqs)
     raw = src.read(39).points
     assert fill[-1].n_raw == int(np.isfinite(raw).all(axis=1).sum()) and fill[-1].stamp == 3.9
-    assert fill[-1].points.dtype == np.float32 and 200 < len(fill[-1].points) < len(raw) / 10
-    keys = np.floor(fill[-1].points / 0.8)  # one centroid per voxel of the grid
+    assert fill[-1].points.dtype == np.float32 and 1000 < len(fill[-1].points) < len(raw) / 4
+    assert fill[-1].voxel == 0.2 and fill[-1].coarsest == 0.8
+    keys = np.floor(fill[-1].points / 0.2)  # one centroid per voxel of the grid
     assert len(np.unique(keys, axis=0)) == len(keys)
     odo.end()
     assert odo.snapshot().backfill == ()

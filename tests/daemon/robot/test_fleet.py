@@ -44,6 +44,7 @@ class FakeEdge:
         # An attach with a backfill goes unanswered (the fault: a link too slow to carry its bytes
         # within the robot's attach_timeout, which this machine's loopback cannot be made)
         self.ignore_backfill = False
+        self.proc_time = 0.01  # the registration time its acks report
         self._lock = threading.Lock()
         self.token = self.session.liveliness().declare_token(KEYS.edge_alive(edge))
         self.queryable = self.session.declare_queryable(KEYS.all_attaches(edge), self._on_attach)
@@ -88,7 +89,8 @@ class FakeEdge:
         def ack(edge: str, epoch: int) -> bytes:
             return wire.encode(wire.ScanAck(
                 robot=scan.robot, seq=scan.seq, send_stamp=scan.send_stamp, status="ok", interarrival=0.1,
-                queue_time=0.0, proc_time=0.01, icp_time=0.01, map_points=100, keypoints=10, sigma=0.1,
+                queue_time=0.0, proc_time=self.proc_time, icp_time=self.proc_time, map_points=100,
+                keypoints=10, sigma=0.1,
                 pose=pose, epoch=epoch, edge=edge))
 
         if self.stale:
@@ -294,13 +296,17 @@ def test_after_a_kill_the_next_edge_gets_the_poses_after_the_checkpoint_and_the_
 def test_back_to_its_edge_after_an_outage_the_robot_hands_over_its_backfill(
         free_port: int, tmp_path: Path, ignore: bool) -> None:
     """The robot's edge goes and comes back under the same id: the attach back to it carries the
-    scans the robot registered itself, at its local odometry's grid (codec version 9), the newest
-    ``backfill_scans``; the robot marks them in its records. When that attach goes unanswered (a
-    link too slow for its bytes), the next one goes without it and is accepted."""
+    scans the robot registered itself (codec version 9), at most ``backfill_scans`` spread over the
+    outage, at the ring's grid (a quarter of the local odometry's 0.8 m): the loopback was seen to
+    carry more than ``backfill_bytes`` in half the attach's timeout; the robot marks them, and the
+    grid, in its records. When that attach goes unanswered (a link too slow for its bytes), the
+    next carries them within ``backfill_bytes``, at a coarser grid, and when that one goes
+    unanswered too the next goes without and is accepted."""
     with fleet_hub(free_port) as (edges, stop):
         a = FakeEdge(free_port, "edgeA")
+        a.proc_time = 0.0  # the round trip is the network's (the link's rate is read from it)
         edges.append(a)
-        robot, thread = start_robot(free_port, tmp_path, stop, backfill_scans=12)
+        robot, thread = start_robot(free_port, tmp_path, stop, backfill_scans=12, backfill_bytes=40_000)
         led = robot.ledger
         wait_for(lambda: led.counters["acked"] >= 10, 30, "edge A acking")
         a.leave()
@@ -317,15 +323,20 @@ def test_back_to_its_edge_after_an_outage_the_robot_hands_over_its_backfill(
     first = back.attaches[0]
     assert first.backfill is not None and first.backfill_sizes is not None
     scans = first.backfill_scans()
-    assert 1 <= len(scans) <= 12 and all(s.coding == "q16d" and s.voxel == 0.8 for s in scans)
+    assert 4 <= len(scans) <= 12 and all(s.coding == "q16d" and s.voxel == 0.2 for s in scans)
+    assert len(first.backfill) > 40_000
     f = robot.metrics()["fleet"]
     assert f["backfill_sent"] >= len(scans)
-    marked = sorted(int(r["seq"]) for r in csv.DictReader(open(tmp_path / "robot_scans.csv"))
-                    if r.get("backfill") == "1")
+    rows = list(csv.DictReader(open(tmp_path / "robot_scans.csv")))
+    marked = sorted(int(r["seq"]) for r in rows if r.get("backfill") == "1")
     if not ignore:
         assert f["backfill_accepted"] == len(scans) and marked == [s.seq for s in scans]
-        assert all(r["status"] != "acked" for r in csv.DictReader(open(tmp_path / "robot_scans.csv"))
+        assert all(r["status"] != "acked" and float(r["backfill_voxel"]) == 0.2 for r in rows
                    if r.get("backfill") == "1")
-    else:  # unanswered: sent again without it, accepted, nothing marked
-        assert len(back.attaches) >= 2 and back.attaches[1].backfill is None
+    else:  # unanswered: again within backfill_bytes, coarser; unanswered: without; accepted; none marked
+        assert len(back.attaches) >= 3
+        second, third = back.attaches[1], back.attaches[2]
+        assert second.backfill is not None and len(second.backfill) <= 40_000
+        assert {s.voxel for s in second.backfill_scans()} <= {0.4, 0.8}
+        assert third.backfill is None
         assert f.get("backfill_accepted", 0) == 0 and marked == []

@@ -136,9 +136,28 @@ def row_name(strategy: str) -> str:
     return name if encoding == "bgr8" else f"{name} + {ENCODING_NAMES.get(encoding, encoding)}"
 
 
-def _key(r: dict[str, Any]) -> tuple[str, str, str, str, str]:
+# What a detection run ran with besides its link, strategy and images, and the defaults (the lab's
+# DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these
+RUN_SETTINGS: dict[str, Any] = {"edge_model": "picodet-s", "edge_threads": 1, "local_model": "nanodet-m",
+                                "extra": "{}"}
+
+
+def run_settings(r: dict[str, Any]) -> tuple[str, ...]:
+    return tuple(str(r.get(k, default)) for k, default in RUN_SETTINGS.items())
+
+
+def settings_note(r: dict[str, Any]) -> str:
+    """What a row ran with that is not the defaults ("" for none): named beside it."""
+    diff = [f"{k} {v}" for k, v, d in zip(RUN_SETTINGS, run_settings(r), run_settings({}), strict=True)
+            if v != d]
+    return f" ({', '.join(diff)})" if diff else ""
+
+
+def _key(r: dict[str, Any]) -> tuple[str, ...]:
+    """What makes runs one experiment: link, quota, strategy, images, frames, and the models, the
+    edge's threads and further settings (``run_settings``)."""
     return (r["trace"], str(r.get("cpu_quota")), r["strategy"], str(r.get("images", "coco-clips")),
-            str(r.get("max_frames")))
+            str(r.get("max_frames")), *run_settings(r))
 
 
 def settled(run: dict[str, Any]) -> bool:
@@ -187,7 +206,7 @@ def table(rows: list[dict[str, Any]], trace: str, quota: str) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: _order(r["strategy"])):
-        name = row_name(r["strategy"])
+        name = row_name(r["strategy"]) + settings_note(r)
         power = _cell(r, "power_w", ".1f") if r.get("power_available") else "n/a"
         lines.append(
             f"| {name} | {r['n']} | {_cell(r, 'ap50_async', '.1f')} "
@@ -208,8 +227,9 @@ def targets(rows: list[dict[str, Any]]) -> str:
     for (trace, quota), group in _cells(rows):
         for ours in sorted((r for r in group if split(r["strategy"])[0] == OURS), key=_frames_order):
             encoding = split(ours["strategy"])[1]
-            fixed = [r for r in group
-                     if is_fixed(r["strategy"], encoding) and r.get("ap50_async") is not None]
+            fixed = [r for r in group  # run with the same models, threads and settings
+                     if is_fixed(r["strategy"], encoding) and r.get("ap50_async") is not None
+                     and run_settings(r) == run_settings(ours)]
             if ours.get("ap50_async") is None or not fixed:
                 continue
             best = max(fixed, key=lambda r: r["ap50_async"])
@@ -218,7 +238,7 @@ def targets(rows: list[dict[str, Any]]) -> str:
             name = row_name(best["strategy"]).replace("Ratio ", "ratio ")
             vs_edge = f"{ours['ap50_async'] - edge['ap50_async']:+.1f}" if edge else "–"
             frames = "" if encoding == "bgr8" else f" ({frames_name(encoding)})"
-            lines.append(f"| {LINK_NAMES.get(trace, trace)}{frames} | {quota} "
+            lines.append(f"| {LINK_NAMES.get(trace, trace)}{frames}{settings_note(ours)} | {quota} "
                          f"| {_cell(ours, 'ap50_async', '.1f')} "
                          f"| {name}: {_cell(best, 'ap50_async', '.1f')} "
                          f"| {_cell(edge, 'ap50_async', '.1f') if edge else '–'} "
