@@ -87,8 +87,8 @@ BACKFILL_GAP = 3
 # counters: which of a robot's outage scans its trajectory registered, not just how many)
 BACKFILL_SEQS_KEPT = 100_000
 # A backfilled scan is registered at this many times the mapper's voxel (the robot's odometry's
-# voxel, with KISS-ICP's defaults on both sides: as backfills were registered before they came
-# finer) and mapped with all its points: a robot sends a backfill finer where its link has room.
+# voxel, with KISS-ICP's defaults on both sides: the grid backfills came at before the robot sent
+# them finer where its link has room) and mapped with all its points.
 # Registered as sent, the simulator's 0.2 m scans held the robot's worker twice as long (35 scans
 # in 1.0 s against 0.5; its next scans queued, dropped) and the `deadzone` runs' trajectories came
 # out worse (0.319-0.344 m against 0.273-0.321), though 50 consecutive scans register closer to

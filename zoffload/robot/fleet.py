@@ -48,7 +48,7 @@ log = logging.getLogger("zoffload.robot.fleet")
 DRAIN_WAIT = 1.0  # seconds a robot waits for its draining edge's final checkpoint before moving
 STATUS_WAIT = 2.0  # seconds a new edge may take to send its status before the robot asks it anyway
 OWN_CHECKPOINT_AFTER = 20  # scans: the robot's own checkpoint over the edge's when this much newer
-BACKFILL_BYTES = 131_072  # an attach's backfill at least may take (RobotFleetSettings.backfill_bytes)
+BACKFILL_BYTES = 131_072  # what an attach's backfill may take on any link (RobotFleetSettings.backfill_bytes)
 BACKFILL_BYTES_MAX = 1_048_576  # ... and at most, on a link seen to carry it (backfill_bytes_max)
 # points of a backfill at most: an edge refuses a backfill of more than its max_points (500k by
 # default) together

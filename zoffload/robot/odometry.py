@@ -116,8 +116,8 @@ class LocalOdometry:
         self.max_range = max_range
         self.voxel = local_voxel_size(max_range, voxel)
         # The period's registered scans, spread over it (the next attach's backfill), kept at a
-        # quarter of the odometry's voxel: sent so where the link has room (the edge's map of the
-        # outage), coarser where it has less, down to the odometry's voxel (a grid at most 10 m)
+        # quarter of the odometry's voxel: sent at it where the link has room (the edge's map of
+        # the outage), coarser where it has less, up to the odometry's voxel (a grid at most 10 m)
         self.backfill_voxel = (backfill_voxel if backfill_voxel is not None
                                else min(self.voxel * BACKFILL_FINER, 10.0))
         self.backfill_coarsest = max(min(self.voxel, 10.0), self.backfill_voxel)
