@@ -86,14 +86,16 @@ BACKFILL_GAP = 3
 # The seqs of backfilled scans a mapper remembers (``backfilled_seqs``, written with the edge's
 # counters: which of a robot's outage scans its trajectory registered, not just how many)
 BACKFILL_SEQS_KEPT = 100_000
-# A backfilled scan is registered at this many times the mapper's voxel (the robot's odometry's
-# voxel, with KISS-ICP's defaults on both sides: the grid backfills came at before the robot sent
-# them finer where its link has room) and mapped with all its points.
-# Registered as sent, the simulator's 0.2 m scans held the robot's worker twice as long (35 scans
-# in 1.0 s against 0.5; its next scans queued, dropped) and the `deadzone` runs' trajectories came
-# out worse (0.319-0.344 m against 0.273-0.321), though 50 consecutive scans register closer to
-# the ground truth from a finer grid (benchmarks/bench_backfill.py; 2026-12-06)
-BACKFILL_REGISTER_GRID = 2.0
+# A backfilled scan is registered from a grid of this many times the mapper's voxel and mapped
+# with all its points: the robot sends its backfill finer where its link has room (a quarter of its
+# odometry's voxel, which is twice the mapper's with KISS-ICP's defaults). Registered as sent, the
+# simulator's 0.2 m scans held the robot's worker twice as long (35 scans in 1.0 s against 0.5;
+# its next scans queued, dropped) and the `deadzone` runs' trajectories came out worse (0.332 +-
+# 0.010 m); from twice the voxel (the grid backfills came at before) the worker's time was as
+# before but 50 consecutive scans registered 2-3x farther from the ground truth than from the
+# voxel itself (benchmarks/bench_backfill.py); from the voxel, deadzone 0.288 +- 0.021 m, its
+# worker 0.6-1.0 s a dead zone (2026-12-06)
+BACKFILL_REGISTER_GRID = 1.0
 
 
 Guesses = list[tuple[str, np.ndarray]]
