@@ -21,10 +21,10 @@ includes scans kept ``local`` (the robot was detached, so an attach followed) at
 (``fleet.backfill_voxel``, else the local odometry's voxel), as the edge did, or, where the
 robot's records mark them (``backfill``), exactly those (of them, only those the edge registered
 when its ``<robot>_edge.json`` lists them), at the grid each went at where the records say
-(``backfill_voxel``: the link's room chose it since 2026-12-06), and registered at twice the
-mapper's voxel as the edge registers a backfilled scan (``BACKFILL_REGISTER_GRID``; the edge's map
-takes all of its points, the replay measures only the trajectory). ``--no-backfill`` replays the run as a
-robot without it would have gone.
+(``backfill_voxel``: the link's room chose it since 2026-12-06), and registered from the grid the
+edge registers a backfilled scan from (``BACKFILL_REGISTER_GRID`` times the mapper's voxel; the
+edge's map takes all of its points, the replay measures only the trajectory). ``--no-backfill``
+replays the run as a robot without it would have gone.
 Per-point times (deskew) are left out.
 """
 
