@@ -385,14 +385,14 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
     for grid in grids:
         clouds = [b.points if grid <= b.voxel else voxel_downsample(b.points, grid).astype(np.float32)
                   for b in backfill]
-        if grid < grids[-1] and sum(len(c) for c in clouds) > BACKFILL_POINTS:
+        points = np.array([len(c) for c in clouds], np.int64)
+        if grid < grids[-1] and int(points.sum()) > BACKFILL_POINTS:
             continue
         coded = [_backfill_scan(robot, epoch, sensor, b, c, grid)
                  for b, c in zip(backfill, clouds, strict=True)]
         sizes = np.array([len(c) for c in coded], np.int64)
         if grid < grids[-1] and int(sizes.sum()) > budget:
             continue  # a coarser grid first, then fewer scans
-        points = np.array([len(c) for c in clouds], np.int64)
         for m in range(len(coded), 0, -1):
             keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
             if int(sizes[keep].sum()) <= budget and int(points[keep].sum()) <= BACKFILL_POINTS:
