@@ -4,7 +4,7 @@ While no edge maps it, the robot registers its scans itself (robot/odometry.py) 
 ``fleet.backfill_scans`` (50) of them, spread over the outage, at a quarter of its odometry's voxel
 (``max_range / 50``); the attach after the outage carries them at the finest of that grid, twice
 it, ... up to the odometry's voxel that fits its bytes (robot/fleet.py ``backfill_payload``), and
-the edge registers each from twice its mapper's voxel and maps all its points (mapping/mapper.py
+the edge registers each from its mapper's voxel and maps all its points (mapping/mapper.py
 ``BACKFILL_REGISTER_GRID``). For the simulator's VLP-16 and KITTI-360's HDL-64:
 
 - the robot, per locally registered scan: the grid pass that keeps it (thread CPU, median ms) at
@@ -12,7 +12,7 @@ the edge registers each from twice its mapper's voxel and maps all its points (m
 - the robot, per attach: ``backfill_payload`` of 50 such scans at several budgets (the grid it
   chose, the scans kept, bytes, thread CPU);
 - the edge: registering 50 consecutive backfilled scans after its own as the attach sent them at
-  each grid, from twice its voxel (the default) and from the points as sent (tried): wall ms a
+  each grid, from its voxel (the default) and from the points as sent (tried): wall ms a
   scan (what holds the robot's worker), the global map's growth (0.1 m cells: misplaced points
   fill more) and, on the simulator, the backfill's poses against the ground truth.
 

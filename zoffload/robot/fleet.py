@@ -20,6 +20,7 @@ doubling from 0.2 s to 5 s.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -53,6 +54,8 @@ BACKFILL_BYTES_MAX = 1_048_576  # ... and at most, on a link seen to carry it (b
 # points of a backfill at most: an edge refuses a backfill of more than its max_points (500k by
 # default) together
 BACKFILL_POINTS = 400_000
+BACKFILL_PROBE = 5  # scans coded first at a grid finer than the coarsest, to estimate what all take
+BACKFILL_PROBE_MARGIN = 1.1  # ... left uncoded when estimated over the budget by this (estimates: within 2 %)
 BACKFILL_SHARE = 0.5  # of the attach's timeout the backfill may take at the rate the link was seen at
 RETRY_MIN, RETRY_MAX = 0.2, 5.0  # seconds between attaches that got no answer
 MAX_TIMINGS = 10_000  # failover times kept
@@ -333,19 +336,28 @@ def attach_message(robot: str, epoch: int, sensor: Sensor, cp: wire.Checkpoint |
     """The attach for an edge that reads codec version ``edge_reads``: from 6 on, the robot says
     it reads 6 (the edge then codes its checkpoints) and sends its checkpoint coded; to an older
     edge, a version-5 attach with the checkpoint's map as float32 points; the checkpoint's turn rate
-    only to an edge that reads 8; the backfill (``backfill_payload``) only to one that reads 9, and
-    the robot's pose of each backfilled scan only to one that reads 10."""
+    only to an edge that reads 8; the backfill as ``with_backfill`` adds it."""
     if cp is not None:
         cp = cp.readable_by(edge_reads)
-    data, sizes, kept = (backfill_payload(robot, epoch, sensor, backfill, backfill_bytes)
+    base = wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
+                       rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
+                       local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5)
+    return with_backfill(base, sensor, edge_reads, backfill, backfill_bytes)
+
+
+def with_backfill(base: wire.Attach, sensor: Sensor, edge_reads: int, backfill: Sequence[Backfilled],
+                  backfill_bytes: int) -> wire.Attach:
+    """``base`` (an attach without a backfill) with the backfill (``backfill_payload`` in
+    ``backfill_bytes``), only to an edge that reads 9, and the robot's pose of each backfilled
+    scan only to one that reads 10; ``base`` itself when no backfill goes."""
+    data, sizes, kept = (backfill_payload(base.robot, base.epoch, sensor, backfill, backfill_bytes)
                          if edge_reads >= 9 and backfill else (None, None, []))
+    if data is None:
+        return base
     bposes = None
     if edge_reads >= 10 and kept and all(backfill[i].pose is not None for i in kept):
         bposes = np.stack([np.asarray(backfill[i].pose, np.float64) for i in kept])
-    return wire.Attach(robot=robot, epoch=epoch, max_range=sensor.max_range, voxel_max=sensor.voxel_max,
-                       rate_hz=sensor.rate_hz, checkpoint=wire.encode(cp) if cp is not None else b"",
-                       local_seqs=seqs, local_poses=poses, reads=max(wire.READS) if edge_reads >= 6 else 5,
-                       backfill=data, backfill_sizes=sizes, backfill_poses=bposes)
+    return dataclasses.replace(base, backfill=data, backfill_sizes=sizes, backfill_poses=bposes)
 
 
 def backfill_grids(voxel: float, coarsest: float | None) -> list[float]:
@@ -378,7 +390,9 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
     ``BACKFILL_POINTS`` points (the scan's ``voxel`` says which); at the coarsest, thinned evenly
     from the first scan (the last too where two fit) to fit both (an attach is one query, answered
     within ``attach_timeout``: 128 kB take half a second at 2 Mbps). (None, None, []) when nothing
-    fits."""
+    fits. A grid finer than the coarsest is first coded for ``BACKFILL_PROBE`` scans spread over
+    the backfill; one their bytes a point put over ``BACKFILL_PROBE_MARGIN`` times the budget is
+    left without coding the others."""
     if not backfill:
         return None, None, []
     grids = backfill_grids(max(b.voxel for b in backfill), max(b.coarsest or b.voxel for b in backfill))
@@ -386,17 +400,28 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
         clouds = [b.points if grid <= b.voxel else voxel_downsample(b.points, grid).astype(np.float32)
                   for b in backfill]
         points = np.array([len(c) for c in clouds], np.int64)
-        if grid < grids[-1] and int(points.sum()) > BACKFILL_POINTS:
-            continue
-        coded = [_backfill_scan(robot, epoch, sensor, b, c, grid)
-                 for b, c in zip(backfill, clouds, strict=True)]
-        sizes = np.array([len(c) for c in coded], np.int64)
+        coded: dict[int, bytes] = {}
+        if grid < grids[-1]:
+            if int(points.sum()) > BACKFILL_POINTS:
+                continue
+            # a few scans, spread, tell what all would take: a grid clearly over the budget is
+            # left without coding the rest
+            probe = np.unique(np.round(np.linspace(0, len(backfill) - 1, min(len(backfill), BACKFILL_PROBE)))
+                              .astype(np.int64)).tolist()
+            coded = {i: _backfill_scan(robot, epoch, sensor, backfill[i], clouds[i], grid) for i in probe}
+            per_point = sum(len(c) for c in coded.values()) / max(1, int(points[probe].sum()))
+            if len(coded) < len(backfill) and per_point * int(points.sum()) > BACKFILL_PROBE_MARGIN * budget:
+                continue
+        coded_all = [coded[i] if i in coded else _backfill_scan(robot, epoch, sensor, b, clouds[i], grid)
+                     for i, b in enumerate(backfill)]
+        sizes = np.array([len(c) for c in coded_all], np.int64)
         if grid < grids[-1] and int(sizes.sum()) > budget:
             continue  # a coarser grid first, then fewer scans
-        for m in range(len(coded), 0, -1):
-            keep = np.unique(np.round(np.linspace(0, len(coded) - 1, m)).astype(np.int64))
+        for m in range(len(coded_all), 0, -1):
+            keep = np.unique(np.round(np.linspace(0, len(coded_all) - 1, m)).astype(np.int64))
             if int(sizes[keep].sum()) <= budget and int(points[keep].sum()) <= BACKFILL_POINTS:
-                return np.frombuffer(b"".join(coded[i] for i in keep), np.uint8), sizes[keep], keep.tolist()
+                data = np.frombuffer(b"".join(coded_all[i] for i in keep), np.uint8)
+                return data, sizes[keep], keep.tolist()
     return None, None, []
 
 
@@ -537,16 +562,16 @@ class FleetLink:
         budget = self._backfill_bytes()
         backfill = (snapshot.backfill if snapshot is not None and edge == self._attached_to
                     and budget > 0 else ())
+        reads = self.state.reads(edge)
+        # without the backfill first: its checkpoint coded once, its size what the backfill may not take
+        base = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, reads)
         if backfill and budget > self.backfill_bytes:  # the link's share less the rest of the attach
-            rest = len(wire.encode(attach_message(self.robot, epoch, self.sensor, cp, seqs, poses,
-                                                  self.state.reads(edge))))
-            budget = max(self.backfill_bytes, budget - rest)
+            budget = max(self.backfill_bytes, budget - len(wire.encode(base)))
         try:
-            msg = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, self.state.reads(edge),
-                                 backfill, budget)
+            msg = with_backfill(base, self.sensor, reads, backfill, budget)
         except (CodingError, ValueError) as exc:  # (the robot's own scans: not expected) without it
             log.warning("backfill for edge %s not coded (%s): attaching without it", edge, exc)
-            msg = attach_message(self.robot, epoch, self.sensor, cp, seqs, poses, self.state.reads(edge))
+            msg = base
         if msg.backfill_sizes is not None:
             self.state.count("backfill_sent", len(msg.backfill_sizes))
             self.state.count("backfill_sent_bytes", len(msg.backfill) if msg.backfill is not None else 0)

@@ -68,6 +68,12 @@ def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) ->
     assert "rate (2 runs)" in line and "92 ± 3 / 100" in line and "0.300 ± 0.071" in line
     assert "2.00 ± 1.41" in line and "10 ± 0 %" in line and "90 ± 0 %" in line and "-50 %" in line
     assert "| 80 ± 0 % |" in line  # T <= 0.11 s
+    assert "runs)" not in line.replace("rate (2 runs)", "")
+    # a figure only some runs know (an edge summary unreadable): their mean, and how many they are
+    runs[0]["delivered_skipped_or_backfilled"] = 0.97
+    runs[1]["delivered_skipped_or_backfilled"] = None
+    line = table_markdown(aggregate(runs)).splitlines()[2]
+    assert "| 97 % (1 of 2 runs) |" in line, line
 
 
 def test_scans_an_outage_kept_local_are_counted_beside_the_delivered_and_skipped(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
+import zoffload.robot.fleet as fleet_module
 from zoffload.mapping.checkpoint import take_checkpoint
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
@@ -22,6 +23,7 @@ from zoffload.robot.fleet import (
     attach_message,
     backfill_budget,
     backfill_grids,
+    backfill_payload,
 )
 from zoffload.robot.odometry import Backfilled, Snapshot
 from zoffload.sources.base import open_scan_source
@@ -359,6 +361,51 @@ def test_the_backfill_goes_at_the_finest_grid_its_bytes_allow(monkeypatch: pytes
     few, _ = attach(10**7)
     assert {s.voxel for s in few} == {0.8} and len(few) < 12
     assert sum(s.n_points for s in few) <= coarse_points // 2
+
+
+def test_a_grid_clearly_over_the_budget_is_left_after_coding_a_few_of_its_scans(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``backfill_payload`` codes ``BACKFILL_PROBE`` scans of a grid finer than the coarsest
+    first and leaves the grid without coding the rest when their bytes a point put all over the
+    budget by ``BACKFILL_PROBE_MARGIN``: the same backfill as coding every scan at every grid, for
+    budgets from below the coarsest to above the finest, with fewer scans coded."""
+    src = open_scan_source("sim")
+    fill = [Backfilled(seq, 100.0 + seq / 10, 28_000,
+                       voxel_downsample(src.read(seq).points, 0.2).astype(np.float32), 0.2, None, 0.8)
+            for seq in range(0, 120, 4)]
+    sensor = Sensor(40.0, 0.07, 10.0)
+    coded: list[float] = []
+    real = fleet_module._backfill_scan
+
+    def counting(*args: object) -> bytes:
+        coded.append(float(args[-1]))  # type: ignore[arg-type]
+        return real(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(fleet_module, "_backfill_scan", counting)
+
+    def payload(budget: int, probe: int) -> tuple[list[int], list[float], int]:
+        monkeypatch.setattr(fleet_module, "BACKFILL_PROBE", probe)
+        coded.clear()
+        data, sizes, kept = backfill_payload("r1", 4, sensor, fill, budget)
+        grids = sorted({s.voxel for s in wire.Attach(
+            robot="r1", epoch=4, max_range=40.0, voxel_max=0.07, rate_hz=10.0,
+            local_seqs=np.zeros(0, np.int64), local_poses=np.zeros((0, 4, 4)), backfill=data,
+            backfill_sizes=sizes).backfill_scans()})
+        return kept, grids, len(coded)
+
+    whole = payload(10**8, len(fill))[1]
+    assert whole == [0.2]
+    chosen = set()
+    fewer = 0
+    for budget in (20_000, 60_000, 131_072, 250_000, 400_000, 600_000, 10**7):
+        kept, grids, n = payload(budget, 5)
+        every_kept, every_grids, every_n = payload(budget, len(fill))  # every scan coded at each grid tried
+        assert (kept, grids) == (every_kept, every_grids), budget
+        assert n <= every_n
+        fewer += n < every_n
+        chosen.update(grids)
+    assert chosen == {0.2, 0.4, 0.8}  # the budgets cover every grid
+    assert fewer >= 3  # and where a finer grid did not fit, it was left after its probe
 
 
 def test_the_robots_pose_of_each_backfilled_scan_goes_to_an_edge_that_reads_10() -> None:

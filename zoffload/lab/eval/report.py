@@ -89,11 +89,13 @@ def aggregate(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         groups.setdefault(folder.parent if RUN_NAME.match(folder.name) else folder, []).append(r)
     rows = []
     for folder, members in groups.items():
-        row = dict(members[0], folder=folder, n=len(members), sd={}, runs=members)
+        row = dict(members[0], folder=folder, n=len(members), sd={}, known={}, runs=members)
         for key in AVERAGED:
             values = [float(v) for v in (_get(m, key) for m in members) if v is not None]
             if not values:
                 continue
+            if len(values) < len(members):  # the mean of the runs that know it: said in its cell
+                row["known"][key] = len(values)
             mean = statistics.fmean(values)
             if key == "trajectory_error.ate_rmse":
                 row["trajectory_error"] = dict(row.get("trajectory_error") or {}, ate_rmse=mean)
@@ -154,13 +156,16 @@ def same_scans_vs_local(row: dict[str, Any], local: dict[str, Any]) -> tuple[flo
 
 
 def _cell(r: dict[str, Any], key: str, spec: str, scale: float = 1.0, unit: str = "") -> str:
-    """The row's figure, ``mean ± sd`` when it has several runs."""
+    """The row's figure, ``mean ± sd`` when it has several runs, and over how many of them when
+    some did not know it (e.g. "+ backfilled" of a run whose edge summary was unreadable)."""
     x = _get(r, key)
     if x is None:
         return "–"
     sd = r.get("sd", {}).get(key)
     text = format(scale * x, spec)
-    return f"{text} ± {format(scale * sd, spec)}{unit}" if sd is not None else text + unit
+    text = f"{text} ± {format(scale * sd, spec)}{unit}" if sd is not None else text + unit
+    known = r.get("known", {}).get(key)
+    return f"{text} ({known} of {r['n']} runs)" if known is not None else text
 
 
 def _local_key(r: dict[str, Any]) -> tuple[str, int | None]:
