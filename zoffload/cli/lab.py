@@ -103,13 +103,16 @@ def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
     p.add_argument("--edge-threads", type=int, default=1,
                    help="inference threads of the edge's detector (default 1: robot and edge share this "
                    "machine, and an edge on every core is slowed by whatever the robot runs)")
+    p.add_argument("--edge-apart", action="store_true",
+                   help="the edge process on a core of its own (the highest), the robot and the link "
+                   "emulator on the others, as on separate computers (needs 2 cores and taskset)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--log-level", default="WARNING")
 
 
 def _detect_kw(a: argparse.Namespace) -> dict[str, Any]:
     return {"images": a.images, "max_frames": a.max_frames, "encoding": a.encoding, "seed": a.seed,
-            "edge_threads": a.edge_threads, "send_size": a.send_size}
+            "edge_threads": a.edge_threads, "send_size": a.send_size, "edge_apart": a.edge_apart}
 
 
 def _run_detect(a: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ from typing import Any
 
 from zoffload.lab.eval.detect_report import RUN_SETTINGS, run_label, run_settings
 from zoffload.lab.eval.detection import detection_metrics
-from zoffload.lab.runner import StartError, frames_line, run_offload
+from zoffload.lab.runner import StartError, edge_apart_cores, frames_line, run_offload
 from zoffload.runtime.config import (
     DetectorSettings,
     EdgeSettings,
@@ -36,6 +36,7 @@ from zoffload.runtime.config import (
     PerceptionSettings,
     RobotSettings,
 )
+from zoffload.runtime.errors import ConfigError
 from zoffload.sources.images import CocoClipSource, open_image_source
 
 # The thesis' grid: robot-only, ratios 0.1 … 0.9, edge-only, its dynamic rule, our earlier rule and
@@ -69,6 +70,10 @@ class DetectExperiment:
     # edge ~10 % (47.8 against 43.4 ms, docs/perception-log.md's detector table)
     edge_threads: int = RUN_SETTINGS["edge_threads"]
     local_model: str = RUN_SETTINGS["local_model"]
+    # The edge process on a core of its own, the robot and the link emulator on the others
+    # (runner.edge_apart_cores), as on separate computers: the robot's local detections then take
+    # nothing from the edge's detector
+    edge_apart: bool = RUN_SETTINGS["edge_apart"]
     seed: int = 0
     repeat: int = 1  # runs of this experiment: run1 ... runN under ``out`` when more than one
     extra: dict[str, Any] = field(default_factory=dict)  # further perception settings
@@ -104,9 +109,13 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
     robot = RobotSettings(scans="none", images=exp.images, out_dir=str(out), wait_edge=30,
                           perception=perception)
     fps = perception.fps or source.rate_hz
+    cpus = edge_apart_cores() if exp.edge_apart else {}
+    if exp.edge_apart and not cpus:
+        raise ConfigError("edge_apart needs at least two cores to split")
     run = run_offload(out, edge, robot, trace, ["--seed", str(exp.seed), "--quiet"], max_frames,
-                      max_frames / fps + 120, keep_interrupted=True, line=frames_line, fetch=False)
+                      max_frames / fps + 120, keep_interrupted=True, line=frames_line, fetch=False, cpus=cpus)
     row = detect_row(exp, out, source)
+    row["cpus"] = {name: sorted(c) for name, c in cpus.items()}
     row["cut_short"] = run.cut_short
     row["robot_exit_code"] = run.robot_code
     (out / "results.json").write_text(json.dumps(row, indent=2))
@@ -116,7 +125,7 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
 def _settings(exp: DetectExperiment) -> dict[str, Any]:
     """What the run ran with besides link, strategy and images (detect_report's RUN_SETTINGS)."""
     return {"edge_model": exp.edge_model, "edge_threads": exp.edge_threads, "local_model": exp.local_model,
-            "extra": json.dumps(exp.extra, sort_keys=True, default=str)}
+            "extra": json.dumps(exp.extra, sort_keys=True, default=str), "edge_apart": exp.edge_apart}
 
 
 def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:

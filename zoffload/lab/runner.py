@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,12 +29,17 @@ from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_sess
 class Spawned:
     """A zoffload program in its own process, with its output in a log file."""
 
-    def __init__(self, name: str, args: list[str], log_path: Path) -> None:
+    def __init__(self, name: str, args: list[str], log_path: Path, cpus: set[int] | None = None) -> None:
+        # ``cpus``: the cores it may run on, set by taskset (util-linux) before it starts Python,
+        # so every thread it ever makes inherits them
+        pin = ["taskset", "-c", ",".join(map(str, sorted(cpus)))] if cpus else []
+        if pin and shutil.which("taskset") is None:
+            raise StartError("taskset (util-linux) is needed to run processes on given cores")
         self.name = name
         self.log_path = log_path
         self._log = open(log_path, "w")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, "-m", "zoffload.cli", *args],
+        self.proc = subprocess.Popen([*pin, sys.executable, "-m", "zoffload.cli", *args],
                                      stdout=self._log, stderr=subprocess.STDOUT, env=env)
 
     def running(self) -> bool:
@@ -186,18 +192,32 @@ def loopback_zenoh(**kw: Any) -> ZenohSettings:
 START_ATTEMPTS = 3  # an edge that did not come up is started again, on other ports
 
 
+def edge_apart_cores(cpus: set[int] | None = None) -> dict[str, set[int]]:
+    """The cores of a run with the edge on one of its own (the highest) and the robot and the link
+    emulator on the others, as on separate computers (``run_offload``'s ``cpus``); {} with fewer
+    than two cores to split."""
+    cores = sorted(cpus if cpus is not None else os.sched_getaffinity(0))
+    if len(cores) < 2:
+        return {}
+    rest = set(cores[:-1])
+    return {"edge": {cores[-1]}, "robot": rest, "link": rest}
+
+
 def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,
                 link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
                 line: Callable[[dict[str, float], float, int], str] = progress_line,
-                fetch: bool = True, on_watch: Callable[[zenoh.Session], None] | None = None) -> OffloadRun:
+                fetch: bool = True, on_watch: Callable[[zenoh.Session], None] | None = None,
+                cpus: Mapping[str, set[int]] | None = None) -> OffloadRun:
     """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback,
     the edge started again on other ports (``START_ATTEMPTS`` in all) when it does not come up: the
     robot has not started then, so nothing of the run is lost (a port can be taken between the
-    moment it is picked and the moment the edge listens). See ``run_offload_once``."""
+    moment it is picked and the moment the edge listens). ``cpus``: the cores each process
+    ("edge", "robot", "link") may run on (``edge_apart_cores``; a process not named: any). See
+    ``run_offload_once``."""
     for attempt in range(1, START_ATTEMPTS + 1):
         try:
             return run_offload_once(out, edge, robot, trace, link_args, total, limit_s, keep_interrupted,
-                                    line, fetch, on_watch)
+                                    line, fetch, on_watch, cpus)
         except StartError as exc:
             if attempt == START_ATTEMPTS:
                 raise
@@ -210,7 +230,8 @@ def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace:
                      link_args: list[str], total: int, limit_s: float, keep_interrupted: bool = False,
                      line: Callable[[dict[str, float], float, int], str] = progress_line,
                      fetch: bool = True,
-                     on_watch: Callable[[zenoh.Session], None] | None = None) -> OffloadRun:
+                     on_watch: Callable[[zenoh.Session], None] | None = None,
+                     cpus: Mapping[str, set[int]] | None = None) -> OffloadRun:
     """Edge, link emulator (unless ``trace`` is None) and robot as separate processes on loopback.
 
     The edge listens; the robot connects through the emulator in client mode (a peer could learn
@@ -229,12 +250,14 @@ def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace:
     write_effective(edge, out / "edge.yaml")
     write_effective(robot, out / "robot.yaml")
     keys = Keys(robot.namespace)
-    edge_p = Spawned("edge", ["edge", "--settings", str(out / "edge.yaml")], out / "edge.log")
+    cpus = cpus or {}
+    edge_p = Spawned("edge", ["edge", "--settings", str(out / "edge.yaml")], out / "edge.log",
+                     cpus.get("edge"))
     link_p = None
     if trace is not None:
         link_p = Spawned("link", ["link", "--trace", trace, "--listen-port", str(link_port), "--target",
                                   f"127.0.0.1:{edge_port}", "--report", str(out / "link.csv"), *link_args],
-                         out / "link.log")
+                         out / "link.log", cpus.get("link"))
     robot_p: Spawned | None = None
     try:
         session = connect_when_listening(direct, edge_p)
@@ -246,7 +269,8 @@ def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace:
                 on_watch(session)
             if not wait_token(session, keys.any_edge_alive(), 30, alive=edge_p.running):
                 raise StartError("the edge did not come up:\n" + edge_p.tail())
-            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log")
+            robot_p = Spawned("robot", ["robot", "--settings", str(out / "robot.yaml")], out / "robot.log",
+                              cpus.get("robot"))
             cut_short = False
             try:
                 code = watch(robot_p, status, total, limit_s, line)

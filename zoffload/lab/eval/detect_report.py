@@ -139,7 +139,7 @@ def row_name(strategy: str) -> str:
 # What a detection run ran with besides its link, strategy and images, and the defaults (the lab's
 # DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these
 RUN_SETTINGS: dict[str, Any] = {"edge_model": "picodet-s", "edge_threads": 1, "local_model": "nanodet-m",
-                                "extra": "{}"}
+                                "extra": "{}", "edge_apart": False}
 
 
 def run_settings(r: dict[str, Any]) -> tuple[str, ...]:
