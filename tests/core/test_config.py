@@ -78,9 +78,13 @@ def test_zenoh_config_applies_the_session_flags() -> None:
     assert json.loads(conf.get_json("transport/unicast/max_links")) == 2
 
 
-def test_zenoh_config_error_is_clear() -> None:
-    with pytest.raises(ZenohSessionError, match="invalid Zenoh configuration"):
-        zenoh_config(ZenohSettings(cfg=["no/such/key:1"]))
+def test_zenoh_config_error_is_clear(tmp_path: Path) -> None:
+    """It names the entry of several ``--cfg`` that Zenoh refused, and a config file it cannot read."""
+    with pytest.raises(ZenohSessionError, match="invalid Zenoh configuration: cfg entry 'no/such/key:1'"):
+        zenoh_config(ZenohSettings(cfg=["transport/unicast/max_links:2", "no/such/key:1"]))
+    missing = tmp_path / "nope.json5"
+    with pytest.raises(ZenohSessionError, match=f"configuration file {missing}"):
+        zenoh_config(ZenohSettings(config_file=str(missing)))
 
 
 def test_edge_waits_longer_before_dropping_unless_told_otherwise() -> None:
@@ -188,6 +192,7 @@ def test_null_in_the_environment_unsets_what_the_file_set(tmp_path: Path) -> Non
     (f"{ROBOT}PERCEPTION__STRATEGI", "'perception.strategi'"),
     (f"{ROBOT}NO_SUCH__KEY", "'no_such'"),
     (f"{ROBOT}VOXEL__SIZE", "voxel is a value"),
+    ("ZOFFLOAD_ROBOT_VOXEL", f"take {ROBOT}KEY"),  # one underscore: not silently ignored
 ])
 def test_unknown_environment_variable_is_named(name: str, named: str) -> None:
     with pytest.raises(ConfigError, match=name) as err:

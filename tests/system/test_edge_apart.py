@@ -75,5 +75,6 @@ def test_a_detection_run_with_the_edge_apart_says_so(tmp_path: Path, coco_dir: P
                                                  cpu_quota=None, edge_apart=True))
     saved = json.loads((tmp_path / "run" / "results.json").read_text())
     assert saved["cpus"] == {"edge": [CORES[-1]], "robot": CORES[:-1], "link": CORES[:-1]}
-    assert saved["edge_apart"] is True and settings_note(saved) == " (edge_apart True)"
+    assert saved["edge_apart"] is True and settings_note(saved) == ""  # the default
+    assert settings_note({k: v for k, v in saved.items() if k != "edge_apart"}) == " (edge_apart False)"
     assert row["balanced"] and row["balance"]["frames_in"] >= 50, row.get("balance")

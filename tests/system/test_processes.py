@@ -81,6 +81,52 @@ def test_missing_data_folder_exits_with_data_code(free_port: int, tmp_path: Path
     assert "does not exist" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_an_unreadable_scan_file_is_skipped_and_a_folder_of_them_exits_with_data_code(
+        free_port: int, tmp_path: Path) -> None:
+    """A truncated .pcd among good ones is skipped and counted, the run goes on (exit 0); a folder
+    none of whose scans reads ends with the data code, its results written."""
+    from tests.core.sources.test_pointcloud_formats import pcd_header, records
+
+    good = pcd_header(40, "binary") + records().tobytes()
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for i in range(5):
+        (folder / f"{i:04d}.pcd").write_bytes(good[:-10] if i == 2 else good)
+
+    def robot(out: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(script("zoffload-robot") + session_args(connect=free_port)
+                              + ["--scans", str(folder), "--wait-edge", "0", "--out", str(tmp_path / out)],
+                              capture_output=True, text=True, timeout=120)
+
+    r = robot("some")
+    assert r.returncode == ExitCode.OK, r.stderr
+    metrics = json.loads((tmp_path / "some" / "robot_metrics.json").read_text())
+    assert metrics["balance"]["produced"] == 4 and metrics["other"]["read_errors"] == 1
+    assert metrics["source_failed"] is None and "0002.pcd" in r.stderr and "skipped" in r.stderr
+    for i in (0, 1, 3, 4):
+        (folder / f"{i:04d}.pcd").write_bytes(b"not a point cloud")
+    r = robot("none")
+    assert r.returncode == ExitCode.DATA, r.stderr
+    assert "data error: the scans source failed" in r.stderr and "Traceback" not in r.stderr
+    metrics = json.loads((tmp_path / "none" / "robot_metrics.json").read_text())
+    assert metrics["balance"]["produced"] == 0 and metrics["other"]["read_errors"] == 5
+
+
+def test_a_results_folder_that_cannot_be_written_is_a_config_error_before_the_run(
+        free_port: int, tmp_path: Path) -> None:
+    """A results folder under a file (or anywhere not writable) fails at start with the
+    configuration code, naming the folder, not after the run with a traceback."""
+    (tmp_path / "afile").write_text("")
+    where = str(tmp_path / "afile" / "sub")
+    robot = ["zoffload-robot", "--wait-edge", "0", "--out", where]
+    for args in (robot, ["zoffload-edge", "--map-dir", where]):
+        r = subprocess.run(script(args[0]) + session_args(listen=free_port) + args[1:], capture_output=True,
+                           text=True, timeout=60)
+        cmd = args[0]
+        assert r.returncode == ExitCode.CONFIG, (cmd, r.stderr)
+        assert "afile/sub" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_port_in_use_exits_with_zenoh_code(tmp_path: Path) -> None:
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

@@ -8,6 +8,7 @@ field declares; settings come from defaults < ``--settings FILE`` (YAML) < ``ZOF
 from __future__ import annotations
 
 import argparse
+import logging
 from collections.abc import Mapping
 from typing import Any
 
@@ -18,6 +19,8 @@ from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
 from zoffload.runtime.errors import ExitCode
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import load_settings
+
+log = logging.getLogger("zoffload")
 
 ROBOT_ENV = "ZOFFLOAD_ROBOT__"
 EDGE_ENV = "ZOFFLOAD_EDGE__"
@@ -116,8 +119,11 @@ def edge_settings(a: argparse.Namespace, environ: Mapping[str, str] | None = Non
 def run_robot(a: argparse.Namespace) -> int:
     from zoffload.robot.server import run
 
-    run(robot_settings(a), StopSignal().install())
-    return ExitCode.OK
+    metrics = run(robot_settings(a), StopSignal().install())
+    failed = {name: m["source_failed"] for name, m in metrics.items() if m.get("source_failed")}
+    for name, why in failed.items():  # the results are written; the run ended short of its data
+        log.error("data error: the %s source failed and ended the run early: %s", name, why)
+    return ExitCode.DATA if failed else ExitCode.OK
 
 
 def run_edge(a: argparse.Namespace) -> int:

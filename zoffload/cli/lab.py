@@ -17,7 +17,7 @@ def _run_demo(a: argparse.Namespace) -> int:
     from zoffload.lab.demo import DemoOptions, run
 
     return run(DemoOptions(duration=a.duration, scans=a.scans, out=a.out, voxel=a.voxel,
-                           replay=a.replay, trace=a.trace, camera=a.camera,
+                           scale_policy=a.scale_policy, replay=a.replay, trace=a.trace, camera=a.camera,
                            view=view_options(a, "view-") if a.view else None))
 
 
@@ -103,9 +103,10 @@ def _detect_arguments(p: argparse.ArgumentParser, sweep: bool = False) -> None:
     p.add_argument("--edge-threads", type=int, default=1,
                    help="inference threads of the edge's detector (default 1: robot and edge share this "
                    "machine, and an edge on every core is slowed by whatever the robot runs)")
-    p.add_argument("--edge-apart", action="store_true",
+    p.add_argument("--edge-apart", action=argparse.BooleanOptionalAction, default=True,
                    help="the edge process on a core of its own (the highest), the robot and the link "
-                   "emulator on the others, as on separate computers (needs 2 cores and taskset)")
+                   "emulator on the others, as on separate computers (default; needs 2 cores and "
+                   "taskset); --no-edge-apart: all on every core")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--log-level", default="WARNING")
 
@@ -191,7 +192,12 @@ def add_demo(sub: Any) -> None:
     d.add_argument("--scans", default="sim", help="'sim' (default) or a folder of real scans")
     d.add_argument("--replay", choices=["once", "loop", "pingpong"], default=None,
                    help="replay mode (default: once for sim, pingpong for a folder)")
-    d.add_argument("--voxel", type=float, default=0.05, help="robot voxel size in m (default 0.05)")
+    d.add_argument("--voxel", type=float, default=0.05,
+                   help="robot voxel size in m: the start of the rate policy (the default), the "
+                   "fixed policy's grid (default 0.05)")
+    d.add_argument("--scale-policy", default="rate",
+                   help="voxel sizing: rate (default: sized for the link), fixed (every scan at --voxel), "
+                   "dqn, dqn:PATH")
     d.add_argument("--out", default=None, help="results folder (default results/demo-<time>)")
     d.add_argument("--trace", default="demo",
                    help="link emulator trace between robot and edge (default: demo, good -> bad -> good)")

@@ -1,6 +1,6 @@
 """Where detector weights come from: a configured path, a model directory, or a verified download.
 
-Resolution order (DESIGN.md): an explicit path → ``$ZOFFLOAD_MODELS/<file>`` →
+Resolution order: an explicit path → ``$ZOFFLOAD_MODELS/<file>`` →
 ``$ZOFFLOAD_DATA/models`` → ``../shared/data/models``
 when that folder exists → a download from a URL the user configures, checked against the
 checksum pinned here (the SHA-256 of the files this project is tested with). A model that cannot be

@@ -53,7 +53,14 @@ from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
 from zoffload.runtime.memory import HeapTrimmer
-from zoffload.runtime.session import DROP_WAIT_KEY, DROP_WAIT_US, MAX_MESSAGE_KEY, open_session, with_defaults
+from zoffload.runtime.session import (
+    DROP_WAIT_KEY,
+    DROP_WAIT_US,
+    MAX_MESSAGE_KEY,
+    certificate_mismatch,
+    open_session,
+    with_defaults,
+)
 
 log = logging.getLogger("zoffload.edge")
 
@@ -151,6 +158,8 @@ class EdgeServer:
     # Startup
     def startup(self) -> None:
         s = self.settings
+        if warning := certificate_mismatch(s.zenoh, s.edge_id):
+            log.warning("%s", warning)
         session = self.session = open_session(edge_zenoh(s.zenoh, s.limits.max_bytes))
         self._ping_q = session.declare_queryable(self.keys.all_pings(s.edge_id),
                                                  self.drops.guard(self._on_ping, "ping"))

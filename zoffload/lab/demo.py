@@ -19,7 +19,7 @@ import numpy as np
 from zoffload.lab.runner import StartError, link_clock_start, run_offload
 from zoffload.protocol import wire
 from zoffload.runtime.config import EdgeSettings, RobotSettings
-from zoffload.runtime.errors import ExitCode
+from zoffload.runtime.errors import ConfigError, ExitCode
 from zoffload.sources.base import Replay
 
 
@@ -29,6 +29,7 @@ class DemoOptions:
     scans: str = "sim"
     out: str | None = None
     voxel: float = 0.05
+    scale_policy: str = "rate"
     replay: Replay | None = None
     trace: str | None = "demo"  # the link emulator's trace; None: no emulator, direct TCP
     camera: str | None = None  # also stream camera frames (e.g. "coco-clips") to the edge detector
@@ -36,6 +37,13 @@ class DemoOptions:
 
 
 def run(opts: DemoOptions) -> int:
+    if opts.trace:  # a wrong name now, with the list, not as the robot failing to connect
+        from zoffload.lab.link.trace import TraceError, load_trace
+
+        try:
+            load_trace(opts.trace)
+        except TraceError as exc:
+            raise ConfigError(str(exc)) from exc
     out = Path(opts.out or f"results/demo-{time.strftime('%Y%m%d-%H%M%S')}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     is_sim = opts.scans == "sim"
@@ -43,7 +51,7 @@ def run(opts: DemoOptions) -> int:
     max_scans = max(1, int(round(opts.duration * 10)))
     edge = EdgeSettings(map_dir=str(out))
     robot = RobotSettings(scans=opts.scans, replay=replay, max_scans=max_scans, voxel=opts.voxel,
-                          out_dir=str(out))
+                          scale_policy=opts.scale_policy, out_dir=str(out))
     if opts.camera:
         from zoffload.detect.models import resolve
         from zoffload.runtime.config import DetectorSettings, PerceptionSettings

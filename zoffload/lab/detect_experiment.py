@@ -72,7 +72,8 @@ class DetectExperiment:
     local_model: str = RUN_SETTINGS["local_model"]
     # The edge process on a core of its own, the robot and the link emulator on the others
     # (runner.edge_apart_cores), as on separate computers: the robot's local detections then take
-    # nothing from the edge's detector
+    # nothing from the edge's detector (co-located, the edge ran 57 ms a frame in edge-only runs
+    # against 65 in ours, README "Experiments")
     edge_apart: bool = RUN_SETTINGS["edge_apart"]
     seed: int = 0
     repeat: int = 1  # runs of this experiment: run1 ... runN under ``out`` when more than one
@@ -111,7 +112,8 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
     fps = perception.fps or source.rate_hz
     cpus = edge_apart_cores() if exp.edge_apart else {}
     if exp.edge_apart and not cpus:
-        raise ConfigError("edge_apart needs at least two cores to split")
+        raise ConfigError("the edge on a core of its own (edge_apart) needs two cores to split: "
+                          "--no-edge-apart runs robot and edge on the one")
     run = run_offload(out, edge, robot, trace, ["--seed", str(exp.seed), "--quiet"], max_frames,
                       max_frames / fps + 120, keep_interrupted=True, line=frames_line, fetch=False, cpus=cpus)
     row = detect_row(exp, out, source)

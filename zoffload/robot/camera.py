@@ -437,7 +437,9 @@ class CameraOffloader:
                 "send_size": self.opts.send_size,
                 "cpu_quota": self.opts.cpu_quota, "cpu_quota_applied": self.opts.quota_mode,
                 "power_available": RaplMonitor().available, "edge_switches": switches,
-                "slow_put_spans": [{"seq": q, "start": a, "end": b} for q, a, b in slow], **summary}
+                "slow_put_spans": [{"seq": q, "start": a, "end": b} for q, a, b in slow],
+                # frames the source could not read (each skipped), and why it ended early if it did
+                "read_errors": self.camera.read_errors, "source_failed": self.camera.failed, **summary}
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -607,6 +607,9 @@ class ScanStreamer:
                                   "used": self._period()}
         # a replay more than a period behind restarts its clock (no burst of overdue scans)
         out["sensor_resynced"] = self._sensor.resynced if self._sensor is not None else 0
+        # why the source ended the replay early (a failed read, READ_ERRORS_IN_A_ROW unreadable
+        # scans); None: it did not (each unreadable scan alone is skipped: ``other.read_errors``)
+        out["source_failed"] = self._sensor.failed if self._sensor is not None else None
         # the window of unanswered scans: its base, the widest it grew (the edge's queue, the
         # path's round trip), the quickest round trip of the current route and the path's
         rtt_min, path_rtt = self.ledger.route_rtt_min, self.ledger.path_rtt

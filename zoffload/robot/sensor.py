@@ -18,7 +18,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from zoffload.sources.base import ReplayClock, replay_order
+from zoffload.sources.base import ReplayClock, ScanSourceError, replay_order
 
 log = logging.getLogger("zoffload.robot.sensor")
 
@@ -44,6 +44,9 @@ class Reading:
 GAPS_KEPT = 50  # live topics: the gaps the measured period is the median of
 GAPS_NEEDED = 3  # ... and how many before it replaces the nominal period
 GAP_MOST = 1.0  # [s] a longer gap (a driver paused) is a pause, not the rate; 5 periods if longer
+# A reading the source cannot read (a truncated file, a malformed message: ScanSourceError) is
+# skipped and counted (``read_errors``); this many in a row end the replay as a failed source
+READ_ERRORS_IN_A_ROW = 10
 
 
 class SensorThread:
@@ -55,7 +58,8 @@ class SensorThread:
         self.max_scans = max_scans
         self.produced = 0
         self.overwritten = 0
-        self.read_errors = 0
+        self.read_errors = 0  # readings that failed: each skipped, or the one that ended the replay
+        self.failed: str | None = None  # why the replay ended early (None: it did not)
         self.resynced = 0  # readings more than a period late: the replay clock restarted at them
         self.cpu_s = 0.0  # CPU time of this thread so far (reading, simulating, pacing)
         self.finished = threading.Event()
@@ -79,11 +83,26 @@ class SensorThread:
         # far apart as they were recorded (stretched to --rate); a live topic paces itself
         clock = ReplayClock(start, self.period, live=live, scale=self.period * self.source.rate_hz)
         last: float | None = None
+        in_a_row = 0  # unreadable readings in a row
+        last_error = ""
         try:
             for k, index in enumerate(replay_order(len(self.source), self.mode)):
                 if self._stop.is_set() or (self.max_scans is not None and k >= self.max_scans):
                     break
-                frame = self.source.read(index)  # a live topic's: waits for its next message
+                try:
+                    frame = self.source.read(index)  # a live topic's: waits for its next message
+                except ScanSourceError as exc:  # one unreadable scan (a truncated file): skipped
+                    self.cpu_s = time.thread_time()
+                    self.read_errors += 1
+                    in_a_row += 1
+                    if in_a_row >= READ_ERRORS_IN_A_ROW:
+                        raise ScanSourceError(f"{in_a_row} readings in a row failed, the last: "
+                                              f"{exc}") from exc
+                    log.warning("%s: reading %d skipped: %s", self._thread.name, index, exc)
+                    last_error = str(exc)
+                    clock.due(None)  # it keeps its slot: the next reading comes a period later
+                    continue
+                in_a_row = 0
                 self.cpu_s = time.thread_time()
                 due, mono = clock.due(getattr(frame, "stamp", None)), time.monotonic()
                 if clock.behind(mono):  # no burst of overdue readings
@@ -107,8 +126,14 @@ class SensorThread:
                     self._slot = reading
                     self.produced += 1
                     self._cond.notify()
+            if self.produced == 0 and self.read_errors:
+                self.failed = (f"none of its readings could be read ({self.read_errors} failed, the "
+                               f"last: {last_error})")
+                log.error("%s source failed: %s", self._thread.name, self.failed)
         except Exception as exc:  # a source failing mid-run ends the replay, it is logged
-            self.read_errors += 1
+            if not isinstance(exc, ScanSourceError):
+                self.read_errors += 1
+            self.failed = str(exc)[:500]
             log.error("%s source failed: %s", self._thread.name, exc)
         finally:
             self.cpu_s = time.thread_time()

@@ -32,7 +32,14 @@ from zoffload.runtime.errors import ConfigError
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.loading import write_effective
 from zoffload.runtime.memory import HeapTrimmer
-from zoffload.runtime.session import MAX_MESSAGE_KEY, dialling_only, open_session, undeclare, with_defaults
+from zoffload.runtime.session import (
+    MAX_MESSAGE_KEY,
+    certificate_mismatch,
+    dialling_only,
+    open_session,
+    undeclare,
+    with_defaults,
+)
 
 log = logging.getLogger("zoffload.robot")
 ROBOT_MAX_MESSAGE = 64 * 1024 * 1024
@@ -65,6 +72,8 @@ class RobotServer:
     def startup(self) -> None:
         s = self.settings
         if self.session is None:
+            if warning := certificate_mismatch(s.zenoh, s.robot_id):
+                log.warning("%s", warning)
             self.session = open_session(robot_zenoh(s.zenoh))
         self._token = self.session.liveliness().declare_token(self.keys.robot_alive(s.robot_id))
         self._status_pub = self.session.declare_publisher(
@@ -186,6 +195,8 @@ def run(settings: RobotSettings, stop: StopSignal | None = None) -> dict[str, An
     write results. Returns each pipeline's metrics by name (``scans``, ``camera``)."""
     stop = stop or StopSignal()
     settings, quota = _apply_quota(settings)
+    if settings.out_dir:  # now, so that a folder it cannot write fails before the run, not after
+        write_effective(settings, Path(settings.out_dir) / "robot_config.yaml")
     metrics = RobotServer(settings, build_pipelines(settings, stop, quota), stop).run()
     for name, m in metrics.items():
         log.info("%s done: %s", name, json.dumps(m.get("balance")))

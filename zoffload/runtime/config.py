@@ -573,6 +573,13 @@ class RobotSettings(_Strict):
             raise ValueError("voxel_range must be [low, high] with 0 < low <= high")
         return v
 
+    @field_validator("scale_policy")
+    @classmethod
+    def _scale_policy(cls, v: str) -> str:
+        if v not in ("rate", "fixed", "dqn") and not (v.startswith("dqn:") and len(v) > 4):
+            raise ValueError(f"unknown scale policy {v!r} (rate, fixed, dqn, dqn:PATH)")
+        return v
+
 
 class EdgeSettings(_Strict):
     """The edge daemon: maps each robot's scans and serves its detector."""

@@ -112,7 +112,11 @@ def _no_such_setting(cls: type[BaseModel], loc: tuple[Any, ...]) -> str:
 def _check_variable_names(cls: type[BaseModel], prefix: str, environ: Mapping[str, str]) -> None:
     """A variable under the prefix must name a setting: pydantic-settings skips the others, and a
     typo silently ignored is a classic field bug."""
+    single = prefix.rstrip("_") + "_"  # ZOFFLOAD_ROBOT_VOXEL: one underscore short of the prefix
     for name in environ:
+        if name.upper().startswith(single.upper()) and not name.upper().startswith(prefix.upper()):
+            raise ConfigError(f"environment variable {name}: settings take {prefix}KEY (two underscores"
+                              f" after {single.rstrip('_')}), e.g. {prefix}{name[len(single):].upper()}")
         if not name.upper().startswith(prefix.upper()):
             continue
         keys = name[len(prefix):].lower().split("__")
@@ -182,7 +186,12 @@ def load_settings(
 
 
 def write_effective(settings: BaseModel, path: Path) -> Path:
-    """Write the settings actually used, as YAML, so every result says how it was made."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False))
+    """Write the settings actually used, as YAML, so every result says how it was made; a folder
+    that cannot be made or written is a configuration error naming it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False))
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path} (the results folder {path.parent}): "
+                          f"{exc.strerror or exc}") from exc
     return path

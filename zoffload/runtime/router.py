@@ -14,11 +14,12 @@ file is taken as it is (``zoffload certs`` writes the key into the router's).
 
 from __future__ import annotations
 
+import json
 import logging
 
 from zoffload.runtime.config import ZenohSettings
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.session import DROP_WAIT_KEY, DROP_WAIT_US, open_session, with_defaults
+from zoffload.runtime.session import DROP_WAIT_KEY, DROP_WAIT_US, open_session, with_defaults, zenoh_config
 
 log = logging.getLogger("zoffload.runtime.router")
 
@@ -29,8 +30,13 @@ def router_zenoh(z: ZenohSettings) -> ZenohSettings:
 
 
 def run(z: ZenohSettings, stop: StopSignal) -> None:
-    session = open_session(router_zenoh(z))
-    log.info("router up, listening on %s", z.listen or "the default endpoint")
+    conf = router_zenoh(z)
+    session = open_session(conf)
+    try:  # what it listens on: -l, else its config file's, else Zenoh's default
+        listen = json.loads(zenoh_config(conf).get_json("listen/endpoints"))
+    except Exception:  # not said in a form this reads
+        listen = z.listen or None
+    log.info("router up, listening on %s", listen or "Zenoh's default endpoint")
     try:
         stop.wait()
     finally:

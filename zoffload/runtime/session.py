@@ -14,7 +14,7 @@ from typing import Any
 import zenoh
 
 from zoffload.runtime.config import ZenohSettings
-from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.errors import ConfigError, ZenohSessionError
 
 
 def ephemeral_ports() -> tuple[int, int]:
@@ -60,10 +60,10 @@ def security_entries(z: ZenohSettings) -> dict[str, Any]:
     entries: dict[str, Any] = {}
     if z.tls_cert or z.tls_key or z.tls_ca:
         if not z.tls_ca:
-            raise ZenohSessionError("tls_cert and tls_key need tls_ca (the CA the other side's certificate "
-                                    "must chain to)")
+            raise ConfigError("tls_cert and tls_key need tls_ca (the CA the other side's certificate "
+                              "must chain to)")
         if bool(z.tls_cert) != bool(z.tls_key):
-            raise ZenohSessionError("tls_cert and tls_key go together")
+            raise ConfigError("tls_cert and tls_key go together")
         for path in (z.tls_ca, z.tls_cert, z.tls_key):
             if path and not os.access(path, os.R_OK):
                 raise ZenohSessionError(f"cannot read the TLS file {path}")
@@ -81,7 +81,7 @@ def security_entries(z: ZenohSettings) -> dict[str, Any]:
                 "is" if len(plain) == 1 else "are")
     if z.user:
         if not z.password_file:
-            raise ZenohSessionError("user needs password_file (the password's first line)")
+            raise ConfigError("user needs password_file (the password's first line)")
         try:
             password = Path(z.password_file).read_text().splitlines()[0].strip()
         except (OSError, IndexError) as exc:
@@ -89,6 +89,31 @@ def security_entries(z: ZenohSettings) -> dict[str, Any]:
         entries["transport/auth/usrpwd/user"] = z.user
         entries["transport/auth/usrpwd/password"] = password
     return entries
+
+
+def certificate_mismatch(z: ZenohSettings, identity: str) -> str | None:
+    """A warning when this program's certificate (``tls_cert``) names another than ``identity``
+    (its robot or edge id): a router's access control knows a client by its certificate's common
+    name, and drops what it sends under another id without a word. None when the names agree, or
+    when it cannot tell (no certificate; ``cryptography``, the ``security`` extra, not installed; a
+    file Zenoh will report itself)."""
+    if not z.tls_cert:
+        return None
+    try:
+        from cryptography import x509
+        from cryptography.x509.oid import NameOID
+    except ImportError:
+        return None
+    try:
+        cert = x509.load_pem_x509_certificate(Path(z.tls_cert).read_bytes())
+    except (OSError, ValueError):
+        return None
+    names = [str(a.value) for a in cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)]
+    if identity in names:
+        return None
+    return (f"the certificate {z.tls_cert} names {', '.join(names) or 'no one'}, not {identity!r}: a "
+            f"router's access control drops what this program sends as {identity!r} (its id must be its "
+            f"certificate's common name)")
 
 
 # Zenoh's own lease is 10 s: a SIGKILLed edge on a machine that stays up closes its sockets and is
@@ -111,6 +136,9 @@ def zenoh_config(z: ZenohSettings) -> zenoh.Config:
     entries = security_entries(z)
     try:
         conf = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+    except Exception as exc:
+        raise ZenohSessionError(f"invalid Zenoh configuration file {z.config_file}: {exc}") from exc
+    try:
         if given("mode"):
             conf.insert_json5("mode", json.dumps(z.mode))
         if z.connect:
@@ -126,11 +154,14 @@ def zenoh_config(z: ZenohSettings) -> zenoh.Config:
         if not z.config_file:
             for key, value in LINK_DEFAULTS.items():
                 conf.insert_json5(key, value)
-        for item in z.cfg:
-            key, value = item.split(":", 1)
-            conf.insert_json5(key, value)
     except Exception as exc:  # zenoh raises ZError and plain exceptions for config problems
         raise ZenohSessionError(f"invalid Zenoh configuration: {exc}") from exc
+    for item in z.cfg:
+        key, value = item.split(":", 1)
+        try:
+            conf.insert_json5(key, value)
+        except Exception as exc:  # which of several --cfg entries: named
+            raise ZenohSessionError(f"invalid Zenoh configuration: cfg entry {item!r}: {exc}") from exc
     return conf
 
 

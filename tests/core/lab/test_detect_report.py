@@ -11,9 +11,11 @@ import pytest
 from zoffload.lab.eval.detect_report import aggregate, table, targets, write_detect_report
 
 
-def _run(folder: Path, strategy: str, ap: float, trace: str = "detect-capped", quota: float = 0.25) -> Path:
+def _run(folder: Path, strategy: str, ap: float, trace: str = "detect-capped", quota: float = 0.25,
+         old: bool = False) -> Path:
+    """A run's results; ``old``: as written before runs named their settings (edge_apart ...)."""
     folder.mkdir(parents=True)
-    (folder / "results.json").write_text(json.dumps({
+    (folder / "results.json").write_text(json.dumps({**({} if old else {"edge_apart": True}),
         "kind": "detect", "strategy": strategy, "trace": trace, "cpu_quota": quota, "encoding": "bgr8",
         "images": "coco-clips@holdout", "max_frames": None, "ap50_async": ap, "ap50_sync": 80.0,
         "processed_pct": 70.0, "offloaded_pct": 60.0, "skipped_pct": 5.0, "robot_rtt_ms": 50.0,
@@ -89,13 +91,16 @@ def test_runs_with_another_edge_model_or_threads_are_another_row(tmp_path: Path)
         row = dict(json.loads((f / "results.json").read_text()), edge_model=model, edge_threads=threads,
                    local_model="nanodet-m", extra="{}")
         runs.append(row)
-    runs.append(json.loads((_run(tmp_path / "old", "edge", 42.0) / "results.json").read_text()))
+    runs.append(json.loads((_run(tmp_path / "old", "edge", 42.0, old=True) / "results.json").read_text()))
+    runs.append(json.loads((_run(tmp_path / "new", "edge", 43.0) / "results.json").read_text()))
     rows = aggregate(runs)
-    assert sorted(r["n"] for r in rows) == [1, 1, 3]
-    assert [r["ap50_async"] for r in rows if r["n"] == 3] == [pytest.approx((50 + 51 + 42) / 3)]
+    assert sorted(r["n"] for r in rows) == [1, 1, 1, 3]
+    assert [r["ap50_async"] for r in rows if r["n"] == 3] == [pytest.approx((50 + 51 + 43) / 3)]
     text = table(rows, "detect-capped", "0.25 core")
     assert "| Edge only (edge_threads 2) | 1 |" in text
     assert "| Edge only (edge_model yolox-nano) | 1 |" in text
+    # an older run: the defaults but for the edge on its own core, which it was not
+    assert "| Edge only (edge_apart False) | 1 | 42.0 |" in text
     ours = dict(runs[0], strategy="dispatch", ap50_async=60.0, edge_model="yolox-nano")
     summary = targets(aggregate([*runs, ours]))
     assert "(edge_model yolox-nano)" in summary and "| +7.0 |" in summary  # against its own model's edge (53)
@@ -114,6 +119,9 @@ def test_a_resumed_sweep_runs_again_a_folder_made_with_another_link_seed(
     assert [e.seed for e in plan] == [0, 1]
     for exp in plan:
         _run(Path(exp.out), "edge", 50.0)  # complete, made by an older sweep: no seed (0)
+    assert de.run_or_reuse(dataclasses.replace(plan[0], edge_apart=False)) == {"strategy": "edge"}
+    assert ran == [0]  # made with the edge apart: run again for a plan without
+    ran.clear()
     assert de.run_or_reuse(plan[0])["ap50_async"] == 50.0 and ran == []
     de.run_or_reuse(plan[1])
     assert ran == [1]

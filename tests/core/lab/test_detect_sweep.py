@@ -32,7 +32,7 @@ def test_the_default_grid_is_every_strategy_link_and_quota_three_times(tmp_path:
 def _done(folder: Path, **extra: Any) -> None:
     folder.mkdir(parents=True)
     (folder / "results.json").write_text(json.dumps({"kind": "detect", "robot_exit_code": 0,
-                                                     "cut_short": False, **extra}))
+                                                     "cut_short": False, "edge_apart": True, **extra}))
 
 
 def test_complete_runs_are_kept_and_an_interrupted_run_ends_the_sweep(

@@ -10,6 +10,7 @@ import pytest
 
 from zoffload.robot import sensor as sensor_mod
 from zoffload.robot.sensor import SensorThread
+from zoffload.sources.base import ScanSourceError
 
 
 class Paced:
@@ -76,3 +77,50 @@ def test_a_replay_that_fell_behind_restarts_its_clock_instead_of_bursting() -> N
     assert s.resynced == 1 and s.overwritten == 0 and len(stamps) == 8
     gaps = list(np.diff(stamps))
     assert min(gaps) >= 0.04, gaps
+
+
+class Flaky:
+    """A replay of ``n`` readings whose ``bad`` ones cannot be read (a truncated file)."""
+
+    name = "flaky"
+    rate_hz = 10.0
+    live = False
+
+    def __init__(self, n: int, bad: set[int]) -> None:
+        self.n, self.bad = n, bad
+
+    def __len__(self) -> int:
+        return self.n
+
+    def read(self, index: int) -> int:
+        if index in self.bad:
+            raise ScanSourceError(f"{index:04d}.pcd: 10 data bytes for 40 points (truncated?)")
+        return index
+
+
+def _taken(source: Flaky) -> tuple[SensorThread, list[int]]:
+    s = SensorThread(source, 500.0)
+    s.start()
+    seqs = []
+    while not s.exhausted:
+        r = s.take(0.05)
+        if r is not None:
+            seqs.append(r.seq)
+    s.stop()
+    return s, seqs
+
+
+def test_an_unreadable_reading_is_skipped_and_counted_and_keeps_its_slot() -> None:
+    s, seqs = _taken(Flaky(6, {2}))
+    assert seqs == [0, 1, 3, 4, 5] and s.produced == 5  # its seq is a gap: the edge bridges it
+    assert s.read_errors == 1 and s.failed is None
+
+
+def test_a_source_none_or_too_many_of_whose_readings_read_has_failed() -> None:
+    s, seqs = _taken(Flaky(3, {0, 1, 2}))  # nothing to replay at all
+    assert seqs == [] and s.read_errors == 3 and s.failed is not None
+    assert s.failed.startswith("none of its readings could be read (3 failed") and "0002.pcd" in s.failed
+    n = sensor_mod.READ_ERRORS_IN_A_ROW
+    s, seqs = _taken(Flaky(3 * n, set(range(3, 3 * n))))  # a recording that breaks off
+    assert seqs == [0, 1, 2] and s.read_errors == n
+    assert s.failed is not None and s.failed.startswith(f"{n} readings in a row failed")

@@ -13,7 +13,7 @@ import zenoh
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.acl import access_control, router_config
 from zoffload.runtime.config import ZenohSettings
-from zoffload.runtime.errors import ZenohSessionError
+from zoffload.runtime.errors import ConfigError, ZenohSessionError
 from zoffload.runtime.session import security_entries, zenoh_config
 
 
@@ -229,13 +229,13 @@ def test_tls_settings_become_zenoh_keys(tmp_path: Path) -> None:
     assert json.loads(conf.get_json(tls + "root_ca_certificate")) == str(tmp_path / "ca.pem")
     assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == "me"
     assert security_entries(ZenohSettings()) == {}
-    with pytest.raises(ZenohSessionError, match="need tls_ca"):
+    with pytest.raises(ConfigError, match="need tls_ca"):  # settings that cannot work: exit code 2
         security_entries(ZenohSettings(tls_cert="a", tls_key="b"))
-    with pytest.raises(ZenohSessionError, match="go together"):
+    with pytest.raises(ConfigError, match="go together"):
         security_entries(ZenohSettings(tls_ca=str(tmp_path / "ca.pem"), tls_cert=str(tmp_path / "me.pem")))
     with pytest.raises(ZenohSessionError, match="cannot read"):
         security_entries(ZenohSettings(tls_ca=str(tmp_path / "missing.pem")))
-    with pytest.raises(ZenohSessionError, match="password_file"):
+    with pytest.raises(ConfigError, match="password_file"):
         security_entries(ZenohSettings(user="me"))
 
 
@@ -260,3 +260,20 @@ def test_the_acl_placeholders_are_not_identities() -> None:
     linked = access_control(Keys(), ["robot1"], ["edge1"], routers=["rack"])
     assert allowed(linked, "router_rack", "ingress", "put", Keys().scan_ack("robot1", "edge1"))
     assert not allowed(linked, "router_rack", "ingress", "put", "zoffload/data/robot1/scan_ack")
+
+
+def test_a_certificate_naming_another_than_the_programs_id_is_told(tmp_path: Path) -> None:
+    """The router's ACL knows a client by its certificate's common name: a robot run as robot2
+    with robot1's certificate is dropped without a word, so the daemons warn at start."""
+    pytest.importorskip("cryptography")
+    from zoffload.runtime.certs import make_ca, make_leaf, write_pair
+    from zoffload.runtime.session import certificate_mismatch
+
+    cert, key = write_pair(tmp_path, "robot1", make_leaf(make_ca(), "robot1"))
+    z = ZenohSettings(tls_ca=str(cert), tls_cert=str(cert), tls_key=str(key))
+    assert certificate_mismatch(z, "robot1") is None
+    warning = certificate_mismatch(z, "robot2")
+    assert warning is not None and "names robot1, not 'robot2'" in warning
+    assert certificate_mismatch(ZenohSettings(), "robot2") is None  # no certificate: nothing to tell
+    unreadable = ZenohSettings(tls_ca=str(cert), tls_cert=str(tmp_path / "gone.pem"), tls_key=str(key))
+    assert certificate_mismatch(unreadable, "robot1") is None  # Zenoh reports the file itself

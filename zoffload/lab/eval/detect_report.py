@@ -137,19 +137,23 @@ def row_name(strategy: str) -> str:
 
 
 # What a detection run ran with besides its link, strategy and images, and the defaults (the lab's
-# DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these
+# DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these,
+# but for the settings of RAN_BEFORE, which they ran as it says
 RUN_SETTINGS: dict[str, Any] = {"edge_model": "picodet-s", "edge_threads": 1, "local_model": "nanodet-m",
-                                "extra": "{}", "edge_apart": False}
+                                "extra": "{}", "edge_apart": True}
+# a setting added after runs were made, and what a run that does not name it ran with: the edge
+# on the robot's cores (``edge_apart``, the default since 2026-12-06)
+RAN_BEFORE: dict[str, Any] = {"edge_apart": False}
 
 
 def run_settings(r: dict[str, Any]) -> tuple[str, ...]:
-    return tuple(str(r.get(k, default)) for k, default in RUN_SETTINGS.items())
+    return tuple(str(r.get(k, RAN_BEFORE.get(k, default))) for k, default in RUN_SETTINGS.items())
 
 
 def settings_note(r: dict[str, Any]) -> str:
     """What a row ran with that is not the defaults ("" for none): named beside it."""
-    diff = [f"{k} {v}" for k, v, d in zip(RUN_SETTINGS, run_settings(r), run_settings({}), strict=True)
-            if v != d]
+    diff = [f"{k} {v}" for k, v, d in zip(RUN_SETTINGS, run_settings(r), map(str, RUN_SETTINGS.values()),
+                                          strict=True) if v != d]
     return f" ({', '.join(diff)})" if diff else ""
 
 
