@@ -44,6 +44,10 @@ def run(opts: DemoOptions) -> int:
             load_trace(opts.trace)
         except TraceError as exc:
             raise ConfigError(str(exc)) from exc
+    try:  # a wrong policy now, not after the results folder was made
+        RobotSettings(scale_policy=opts.scale_policy, voxel=opts.voxel)
+    except ValueError as exc:  # pydantic's ValidationError names the setting
+        raise ConfigError(str(exc).replace("\n", " ")) from exc
     out = Path(opts.out or f"results/demo-{time.strftime('%Y%m%d-%H%M%S')}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     is_sim = opts.scans == "sim"

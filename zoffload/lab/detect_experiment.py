@@ -21,6 +21,7 @@ lab/detect_link.py).
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -92,6 +93,10 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
             if row.get("cut_short"):
                 break
         return row
+    cpus = edge_apart_cores() if exp.edge_apart else {}
+    if exp.edge_apart and (not cpus or shutil.which("taskset") is None):
+        raise ConfigError("the edge on a core of its own (edge_apart) needs two cores to split and "
+                          "taskset (util-linux): --no-edge-apart runs robot and edge on every core")
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     source = open_image_source(exp.images)  # fails early, with a clear message, if it is missing
@@ -110,10 +115,6 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
     robot = RobotSettings(scans="none", images=exp.images, out_dir=str(out), wait_edge=30,
                           perception=perception)
     fps = perception.fps or source.rate_hz
-    cpus = edge_apart_cores() if exp.edge_apart else {}
-    if exp.edge_apart and not cpus:
-        raise ConfigError("the edge on a core of its own (edge_apart) needs two cores to split: "
-                          "--no-edge-apart runs robot and edge on the one")
     run = run_offload(out, edge, robot, trace, ["--seed", str(exp.seed), "--quiet"], max_frames,
                       max_frames / fps + 120, keep_interrupted=True, line=frames_line, fetch=False, cpus=cpus)
     row = detect_row(exp, out, source)

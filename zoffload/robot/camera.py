@@ -362,15 +362,17 @@ class CameraOffloader:
 
     def run(self) -> None:
         self.camera.start()
-        booked_overwrites = 0
+        booked_overwrites = booked_unreadable = 0
         try:
             while not self.stop.is_set():
                 reading = self.camera.take(timeout=0.02)
                 with self._lock:
                     self.book.expire(time.time())
                     new = self.camera.overwritten - booked_overwrites
-                    self.book.camera_dropped(new)
+                    bad = self.camera.read_errors - booked_unreadable
+                    self.book.camera_dropped(new, bad)
                     booked_overwrites += new
+                    booked_unreadable += bad
                 if reading is None:
                     if self.camera.exhausted:
                         break
@@ -379,7 +381,8 @@ class CameraOffloader:
         finally:
             self.camera.stop()
             with self._lock:
-                self.book.camera_dropped(self.camera.overwritten - booked_overwrites)
+                self.book.camera_dropped(self.camera.overwritten - booked_overwrites,
+                                         self.camera.read_errors - booked_unreadable)
             self._drain()
 
     def _drain(self) -> None:

@@ -44,8 +44,8 @@ log = logging.getLogger("zoffload.robot.frames")
 MAX_FALLBACK_EVENTS = 1000  # fallbacks listed in the summary (all are counted)
 # Final buckets of a camera frame (skipped: no side could finish it while fresh)
 DONE = ("local_done", "edge_done")
-DROPPED = ("dropped_camera", "dropped_stale", "dropped_window", "dropped_send", "skipped", "edge_lost",
-           "edge_dropped", "edge_error", "error")
+DROPPED = ("dropped_camera", "dropped_unreadable", "dropped_stale", "dropped_window", "dropped_send",
+           "skipped", "edge_lost", "edge_dropped", "edge_error", "error")
 
 
 @dataclass(frozen=True)
@@ -103,10 +103,12 @@ class FrameBook:
         self._stamped: bool | None = None  # whether the last answer carried the edge's arrival
 
     # Frames in, decisions out
-    def camera_dropped(self, n: int) -> None:
-        """Frames the camera replaced before the loop took them."""
-        self.counters["frames_in"] += n
+    def camera_dropped(self, n: int, unreadable: int = 0) -> None:
+        """Frames the camera replaced before the loop took them, and frames its source could not
+        read (skipped by the sensor thread: their seqs are gaps)."""
+        self.counters["frames_in"] += n + unreadable
         self.counters["dropped_camera"] += n
+        self.counters["dropped_unreadable"] += unreadable
 
     def decide(self, seq: int, index: int, capture: float, now: float,
                robot: RobotView | None = None) -> tuple[str, bool]:

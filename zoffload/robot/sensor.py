@@ -92,6 +92,8 @@ class SensorThread:
                 try:
                     frame = self.source.read(index)  # a live topic's: waits for its next message
                 except ScanSourceError as exc:  # one unreadable scan (a truncated file): skipped
+                    if self._stop.is_set():  # the source closed under a read at shutdown
+                        break
                     self.cpu_s = time.thread_time()
                     self.read_errors += 1
                     in_a_row += 1
@@ -131,6 +133,8 @@ class SensorThread:
                                f"last: {last_error})")
                 log.error("%s source failed: %s", self._thread.name, self.failed)
         except Exception as exc:  # a source failing mid-run ends the replay, it is logged
+            if self._stop.is_set():  # closed under a read at shutdown: not a failure
+                return
             if not isinstance(exc, ScanSourceError):
                 self.read_errors += 1
             self.failed = str(exc)[:500]

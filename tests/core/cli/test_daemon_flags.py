@@ -11,8 +11,9 @@ from pydantic import BaseModel
 
 from zoffload.cli.daemons import edge_parser, edge_settings, robot_parser, robot_settings, session_flags
 from zoffload.cli.main import build_parser, edge_main, robot_main
+from zoffload.cli.main import main as zoffload_main
 from zoffload.runtime.config import EdgeSettings, RobotSettings
-from zoffload.runtime.errors import ConfigError
+from zoffload.runtime.errors import ConfigError, ExitCode
 
 # (flags, {key path: value}): the historical flags and what they set.
 SESSION_FLAGS: list[tuple[list[str], dict[str, Any]]] = [
@@ -202,3 +203,14 @@ def test_a_flag_cut_short_is_not_taken_for_a_longer_one(capsys: pytest.CaptureFi
         assert err.value.code == 2 and argv[0] in capsys.readouterr().err
     with pytest.raises(SystemExit):
         build_parser().parse_args(["edge", "--mapper.queu", "7"])
+
+
+@pytest.mark.parametrize(("argv", "named"), [(["--trace", "nosuchtrace"], "nosuchtrace"),
+                                             (["--scale-policy", "rat"], "unknown scale policy 'rat'")])
+def test_a_demo_with_a_wrong_trace_or_policy_stops_before_it_starts(
+        argv: list[str], named: str, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Named at once with the configuration code, before any folder or process (the trace used
+    to surface as the robot failing to connect to an emulator that never started)."""
+    out = tmp_path / "demo"
+    assert zoffload_main(["demo", "--out", str(out), *argv]) == ExitCode.CONFIG
+    assert named in caplog.text and not out.exists()

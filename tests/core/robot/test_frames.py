@@ -64,6 +64,10 @@ def test_every_frame_ends_in_exactly_one_bucket() -> None:
     bal = b.balance()
     assert bal["pending"] == 0 and b.balanced()
     assert bal["frames_in"] == 8 == sum(bal[k] for k in (*DONE, *DROPPED))
+    b.camera_dropped(2, unreadable=1)  # two replaced by newer ones, one its source could not read
+    bal = b.balance()
+    assert bal["frames_in"] == 11 and bal["dropped_camera"] == 2 and bal["dropped_unreadable"] == 1
+    assert b.balanced()
     assert b.counters["late_or_unknown_results"] == 1
     assert b.records[edge[0]]["n_persons"] == 1 and b.persons[local[0]][1][0] == pytest.approx(0.9)
     # a result after its frame was booked lost is late: counted, the bucket stays

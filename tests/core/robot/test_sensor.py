@@ -124,3 +124,35 @@ def test_a_source_none_or_too_many_of_whose_readings_read_has_failed() -> None:
     s, seqs = _taken(Flaky(3 * n, set(range(3, 3 * n))))  # a recording that breaks off
     assert seqs == [0, 1, 2] and s.read_errors == n
     assert s.failed is not None and s.failed.startswith(f"{n} readings in a row failed")
+
+
+class ClosedAtShutdown:
+    """A live topic with no message: its read waits until the source is closed, then raises
+    (``LiveTopic.take``: "ros2:/x closed")."""
+
+    name = "ros2:/points"
+    rate_hz = 10.0
+    live = True
+
+    def __init__(self) -> None:
+        import threading
+
+        self.closed = threading.Event()
+
+    def __len__(self) -> int:
+        return 10
+
+    def read(self, index: int) -> int:
+        self.closed.wait(5)
+        raise ScanSourceError(f"{self.name} closed")
+
+
+def test_a_live_source_closed_under_a_read_at_shutdown_is_not_a_failed_source() -> None:
+    src = ClosedAtShutdown()
+    s = SensorThread(src, 10.0)
+    s.start()
+    time.sleep(0.1)
+    s._stop.set()  # as stop() does, before the pipeline closes the source
+    src.closed.set()
+    s.stop()
+    assert s.finished.is_set() and s.read_errors == 0 and s.failed is None

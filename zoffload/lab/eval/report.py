@@ -205,7 +205,7 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
             f"| {_fmt(r['points_before'], ',.0f')} → {_cell(r, 'points_after', ',.0f')} "
             f"| {received} / {r.get('scans_produced', r['scans_sent']):.0f} ({r['scans_sent']:.0f}) "
             f"| {_cell(r, 'T_mean', '.3f')} "
-            f"| {_cell(r, 'T_le_0.11', '.0f', 100)} % "
+            f"| {_cell(r, 'T_le_0.11', '.0f', 100, ' %')} "
             f"| {_cell(r, 'map_points', ',.0f')} | {vs} | {_cell(r, 'trajectory_error.ate_rmse', '.3f')} "
             f"| {_cell(r, 'robot_cpu_ms', '.2f')} | {_cell(r, 'skipped_share', '.0f', 100, ' %')} "
             f"| {_cell(r, 'on_time_slot', '.0f', 100, ' %')} "
