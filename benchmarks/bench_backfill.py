@@ -58,11 +58,12 @@ def _robot(scans: list[np.ndarray], max_range: float) -> tuple[list[Backfilled],
           f"({statistics.median(pts):,.0f} points), at {voxel:.2f} m {grid[voxel]:.2f} ms "
           f"({statistics.median(coarse):,.0f} points); the ring of {len(ring)}: {mb:.1f} MB")
     sensor = Sensor(max_range, 0.07, 10.0)
-    print(f"robot, per attach ({len(ring)} scans): budget -> grid, scans kept, bytes, thread CPU")
+    print(f"robot, per attach ({len(ring)} scans): budget -> grid, scans kept, bytes, thread CPU "
+          "(median of 5)")
     for budget in (BACKFILL_BYTES, 4 * BACKFILL_BYTES, BACKFILL_BYTES_MAX):
-        c0 = time.thread_time()
         data, sizes, kept = backfill_payload("r1", 1, sensor, ring, budget)
-        cpu = (time.thread_time() - c0) * 1e3
+        cpu = median_ms(lambda b=budget: backfill_payload("r1", 1, sensor, ring, b), repeat=5,
+                        clock=time.thread_time)
         scans_out = wire.Attach(robot="r1", epoch=1, max_range=max_range, voxel_max=0.07, rate_hz=10.0,
                                 checkpoint=b"", local_seqs=np.zeros(0, np.int64),
                                 local_poses=np.zeros((0, 4, 4)), backfill=data,
