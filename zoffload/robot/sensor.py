@@ -47,6 +47,7 @@ GAP_MOST = 1.0  # [s] a longer gap (a driver paused) is a pause, not the rate; 5
 # A reading the source cannot read (a truncated file, a malformed message: ScanSourceError) is
 # skipped and counted (``read_errors``); this many in a row end the replay as a failed source
 READ_ERRORS_IN_A_ROW = 10
+SKIPS_LOGGED, SKIPS_LOGGED_EVERY = 10, 100  # the first skipped readings logged, then every 100th
 
 
 class SensorThread:
@@ -100,9 +101,11 @@ class SensorThread:
                     if in_a_row >= READ_ERRORS_IN_A_ROW:
                         raise ScanSourceError(f"{in_a_row} readings in a row failed, the last: "
                                               f"{exc}") from exc
-                    log.warning("%s: reading %d skipped: %s", self._thread.name, index, exc)
+                    if self.read_errors <= SKIPS_LOGGED or self.read_errors % SKIPS_LOGGED_EVERY == 0:
+                        log.warning("%s: reading %d skipped (%d so far): %s", self._thread.name, index,
+                                    self.read_errors, exc)
                     last_error = str(exc)
-                    clock.due(None)  # it keeps its slot: the next reading comes a period later
+                    clock.skip()  # it keeps its slot: the next reading comes a period later
                     continue
                 in_a_row = 0
                 self.cpu_s = time.thread_time()

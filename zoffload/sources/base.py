@@ -93,6 +93,13 @@ class ReplayClock:
         self._due += step
         return self._due
 
+    def skip(self) -> None:
+        """A reading that could not be read keeps its slot: one period on; after a stamped reading
+        (a bag's) nothing, as the next stamp's distance from the last covers the skipped one."""
+        if self.live or self._stamp is not None:
+            return
+        self._due += self.period
+
     def behind(self, now: float) -> bool:
         """Whether the reading just due is more than a period late at ``now`` (a slow first read,
         the process stalled); then the clock restarts from ``now``: a sensor that was not read

@@ -156,3 +156,13 @@ def test_a_live_source_closed_under_a_read_at_shutdown_is_not_a_failed_source() 
     src.closed.set()
     s.stop()
     assert s.finished.is_set() and s.read_errors == 0 and s.failed is None
+
+
+def test_skipped_readings_are_logged_first_then_now_and_then(caplog: pytest.LogCaptureFixture) -> None:
+    """A looping replay over a bad file skips it on every pass: every skip is counted, the log
+    keeps the first ``SKIPS_LOGGED`` and every ``SKIPS_LOGGED_EVERY``-th, not a line a pass."""
+    n = 2 * (sensor_mod.SKIPS_LOGGED + 15)
+    with caplog.at_level("WARNING", logger="zoffload.robot.sensor"):
+        s, seqs = _taken(Flaky(n, set(range(1, n, 2))))  # every other reading unreadable
+    assert s.read_errors == n // 2 and len(seqs) == n // 2 and s.failed is None
+    assert sum("skipped" in r.getMessage() for r in caplog.records) == sensor_mod.SKIPS_LOGGED

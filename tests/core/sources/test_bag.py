@@ -78,6 +78,13 @@ def test_replay_clock_follows_recorded_stamps() -> None:
     assert ReplayClock(0.0, 0.1, live=True).due(5.0) == -np.inf
     slow = ReplayClock(start=0.0, period=0.5, scale=5.0)  # a 10 Hz recording replayed at 2 Hz
     np.testing.assert_allclose([slow.due(s) for s in (5.0, 5.1, 5.3)], [0.5, 1.0, 2.0])
+    # a reading that could not be read keeps its slot: a bag's next one as far as recorded, a
+    # file's one period on
+    slow = ReplayClock(start=0.0, period=0.5, scale=5.0)
+    dues = [slow.due(5.0), slow.skip(), slow.due(5.2)]  # 5.1 unreadable
+    assert dues[0] == 0.5 and dues[2] == pytest.approx(1.5)
+    files = ReplayClock(start=0.0, period=0.1)
+    assert [files.due(), files.skip(), files.due()] == [pytest.approx(0.1), None, pytest.approx(0.3)]
 
 
 def test_bag_spec() -> None:
