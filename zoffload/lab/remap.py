@@ -44,7 +44,7 @@ from zoffload.edge.export import registered_backfill
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.mapping.cloud import drop_non_finite
-from zoffload.mapping.mapper import BACKFILL_REGISTER_GRID, MOTION_SPAN, motion_per_scan
+from zoffload.mapping.mapper import MOTION_SPAN, motion_per_scan
 from zoffload.mapping.se3 import as_rigid
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol.coding import DECODERS, decode_q16d, encode_q16d, quant_step
@@ -160,8 +160,8 @@ def remap(folder: Path, edge_bridges: bool = False, backfill: bool = True) -> di
         if frame.gt_pose is not None:
             truth[seq] = frame.gt_pose
         points = _as_sent(drop_non_finite(frame.points)[0], voxel, coding, fraction)
-        if seq in filled and len(points):  # registered at the edge's grid for a backfilled scan
-            points = voxel_downsample(points, BACKFILL_REGISTER_GRID * mapper.voxel_size)
+        if seq in filled:  # registered as the edge registers a backfilled scan
+            points = mapper.backfill_points(points)
         reg = mapper.register(seq, points)
         last = seq
         if reg.gap_motion:

@@ -243,6 +243,11 @@ class RobotMapper:
         self.backfill_unused = 0  # backfilled scans not registered (no earlier state, or too old)
         self.backfill_posed = 0  # backfills whose first scan was predicted from their own poses (v10)
 
+    def backfill_points(self, points: np.ndarray) -> np.ndarray:
+        """What a backfilled scan is registered from: its points at ``BACKFILL_REGISTER_GRID``
+        times the mapper's voxel (the global map takes all of them)."""
+        return voxel_downsample(points, BACKFILL_REGISTER_GRID * self.voxel_size) if len(points) else points
+
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None,
                  map_points: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
@@ -517,9 +522,7 @@ class RobotMapper:
                 pose = np.asarray(self.odometry.last_pose, np.float64) @ rel
                 self.predict_from(seq, seq, pose, as_rigid(se3_power(rel, 1.0 / (seq - prev))))
             try:
-                grid = BACKFILL_REGISTER_GRID * self.voxel_size
-                self.register(seq, voxel_downsample(points, grid) if len(points) else points,
-                              map_points=points)
+                self.register(seq, self.backfill_points(points), map_points=points)
             except Exception as exc:  # a scan KISS-ICP cannot take: the backfill ends before it
                 log.warning("backfill scan %d not registered (%s): the %d after it left", seq,
                             str(exc)[:200], len(newer) - done - 1)

@@ -406,8 +406,7 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
                 continue
             # a few scans, spread, tell what all would take: a grid clearly over the budget is
             # left without coding the rest
-            probe = np.unique(np.round(np.linspace(0, len(backfill) - 1, min(len(backfill), BACKFILL_PROBE)))
-                              .astype(np.int64)).tolist()
+            probe = _spread(len(backfill), BACKFILL_PROBE).tolist()
             coded = {i: _backfill_scan(robot, epoch, sensor, backfill[i], clouds[i], grid) for i in probe}
             per_point = sum(len(c) for c in coded.values()) / max(1, int(points[probe].sum()))
             if len(coded) < len(backfill) and per_point * int(points.sum()) > BACKFILL_PROBE_MARGIN * budget:
@@ -418,11 +417,17 @@ def backfill_payload(robot: str, epoch: int, sensor: Sensor, backfill: Sequence[
         if grid < grids[-1] and int(sizes.sum()) > budget:
             continue  # a coarser grid first, then fewer scans
         for m in range(len(coded_all), 0, -1):
-            keep = np.unique(np.round(np.linspace(0, len(coded_all) - 1, m)).astype(np.int64))
+            keep = _spread(len(coded_all), m)
             if int(sizes[keep].sum()) <= budget and int(points[keep].sum()) <= BACKFILL_POINTS:
                 data = np.frombuffer(b"".join(coded_all[i] for i in keep), np.uint8)
                 return data, sizes[keep], keep.tolist()
     return None, None, []
+
+
+def _spread(n: int, m: int) -> np.ndarray:
+    """At most ``m`` of the indices 0 … n − 1, evenly spread, the first always and the last too
+    where two fit."""
+    return np.unique(np.round(np.linspace(0, n - 1, min(n, m))).astype(np.int64))
 
 
 def _backfill_scan(robot: str, epoch: int, sensor: Sensor, b: Backfilled, points: np.ndarray,
