@@ -294,7 +294,7 @@ def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir:
         edge = start_edge(s, edge_args(free_port, "--no-mapping"), tmp_path / "edge.log")
         try:
             cfg = _robot_yaml(tmp_path, free_port, coco_dir, strategy="dispatch", max_frames=150,
-                              encoding="jpeg")
+                              encoding="jpeg", learn_bias=True)
             robot = Proc(script("zoffload-robot") + ["--settings", str(cfg)], tmp_path / "robot.log")
             wait_for(lambda: robot.p.poll() is not None
                      or runner.wait_token(s, KEYS.robot_alive("robot1"), 0.5), 60, "the robot's token")
@@ -325,6 +325,12 @@ def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir:
     assert max(jpeg_bytes) < 848 * 480 * 3 / 4  # JPEG, not raw
     det = np.load(run / "detections.npz")
     assert det["counts"].sum() > 0 and len(det["seqs"]) == b["local_done"] + b["edge_done"]
+    # learn_bias: every edge answer with detections (a frame's or a copy's) was compared
+    lb = m["local_bias"]
+    assert lb["learn"] is True and lb["set_s"] == 0.04 and 0 <= lb["used_s"] <= 0.3
+    assert b["edge_done"] <= lb["edge_answers"] <= b["edge_done"] + m["other"].get("copies_answered", 0)
+    if lb["edge_answers"] >= 25:  # curves read every 25 answers: the edge agrees with itself
+        assert len(lb["edge_curve"]) == 6 and lb["edge_curve"][0] == 1.0
 
 
 def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int, models_dir: Path) -> None:

@@ -43,7 +43,16 @@ frame that would replace one already waiting in a side's one-slot queue counts a
 ``local_bias`` (one camera period, 40 ms) is how much sooner the local side must finish to be
 chosen: on the tuning half of the images NanoDet-m on a fresh frame scores what PicoDet-S scores
 one frame late (78.3 vs 78.2 AP50), and PicoDet-S is the stronger model in general (COCO mAP 30.6
-against 20.6). Each edge frame carries the recent share of frames the edge lost (timeouts,
+against 20.6). With ``learn_bias`` (off by default) the bias is measured online instead
+(policy/agreement.py): each edge answer stands as the truth for the answers to the frames just
+before it, and the bias is how many camera periods older an edge answer may be and still agree
+with it as well as a local answer does, pulled towards ``local_bias`` while few answers were
+compared (``bias_prior`` pairs weigh as much as the prior). It measures the models' agreement,
+not their accuracy: within a 50 s run on the held-out images it wandered between 0.4 and 2.0
+periods and scored no better than the constant (docs/perception-log.md: "The local bias,
+measured online"). The bias is at most half of ``max_age``.
+
+Each edge frame carries the recent share of frames the edge lost (timeouts,
 errors) times ``max_age``: the offloading thesis' failure was an edge whose few returning frames
 looked fast. A frame the edge answers ``dropped`` is none of them: the edge serves each robot's
 newest waiting frame and drops the older ones (and the oldest when its queue of two overflows),
@@ -86,6 +95,9 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from zoffload.policy.agreement import Agreement
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
 
 
@@ -151,6 +163,8 @@ class CpuMeter:
 class Dispatcher(Strategy):
     max_age: float = 0.6  # s from capture: a later result is not worth the work
     local_bias: float = 0.04  # s the local side must finish sooner to be chosen (a lighter model)
+    learn_bias: bool = False  # measure the bias from the answers (policy/agreement.py)
+    bias_prior: float = 100.0  # compared answer pairs that weigh as much as local_bias
     refresh_period: float = 1.0  # s without an edge frame before a copy measures the edge
     retry_period: float = 0.2  # s between frames (or copies) sent to a blocked edge
     cpu_share: float = 1.0  # of the CPU quota the process may fill
@@ -174,6 +188,8 @@ class Dispatcher(Strategy):
     window: float = 4.0
     blocked: bool = False  # an edge frame went unanswered: no edge frames until an answer
     estimates: tuple[float, float] = (NAN, NAN)  # the last decision's finish times, local and edge
+    agreement: Agreement = field(default_factory=lambda: Agreement(keep=1000, min_pairs=30))
+    bias_used: float = NAN  # s: the last decision's local bias
     frame_period: Ewma = field(default_factory=lambda: Ewma(0.1))  # between camera frames
     _last_capture: float = NAN
     _last_edge_send: float = -math.inf
@@ -282,6 +298,31 @@ class Dispatcher(Strategy):
         room = max(self.cpu_share * st.cpu_quota - others, 0.02 * st.cpu_quota)
         return st.local_last_start + cost / room
 
+    def bias(self, period: float) -> float:
+        """Seconds sooner the local detector must finish to take a frame: ``local_bias``, or with
+        ``learn_bias`` the learnt offset in camera periods, weighed against ``local_bias`` by the
+        pairs behind it (``bias_prior`` pairs: half and half); between 0 and half of ``max_age``."""
+        offset = self.agreement.offset if self.learn_bias else NAN
+        bias = self.local_bias
+        if math.isfinite(offset):
+            w = self.agreement.weight / (self.agreement.weight + self.bias_prior)
+            bias += w * (offset * period - self.local_bias)
+        self.bias_used = min(max(bias, 0.0), 0.5 * self.max_age)
+        return self.bias_used
+
+    def bias_summary(self) -> dict[str, object]:
+        """The bias for the run's summary: as set, as learnt (periods, NaN: never known), the last
+        one used (s), and the agreement curves behind the last estimate (AP50 against the edge's
+        answers, by frames of age; None: not known)."""
+        def known(x: float) -> float | None:
+            return round(x, 4) if math.isfinite(x) else None
+
+        edge, local = self.agreement.curves
+        return {"set_s": self.local_bias, "learn": self.learn_bias, "edge_answers": self.agreement.answers,
+                "learnt_periods": known(self.agreement.offset),
+                "used_s": known(self.bias_used), "edge_curve": [known(a) for a in edge],
+                "local_curve": [known(a) for a in local]}
+
     # Decision
     def choose(self, st: OffloadState) -> str:
         if self._local_fresh:
@@ -307,7 +348,7 @@ class Dispatcher(Strategy):
         local_fits = f_edge > deadline or self.stall(st.now) <= 0.5 * period
         f_local, start = self.local_finish(st)
         if f_local <= deadline and start < st.now + self.slack * period and local_fits:
-            options.append((st.local_waiting, f_local + self.local_bias, LOCAL))
+            options.append((st.local_waiting, f_local + self.bias(period), LOCAL))
         # Just in time: the edge path takes a frame while it holds fewer than its depth; beyond
         # that, only a frame the local detector does not take either, while the window has room
         # (a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
@@ -362,6 +403,10 @@ class Dispatcher(Strategy):
         return EDGE
 
     # Observations
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:
+        if self.learn_bias:
+            self.agreement.observe(seq, side, boxes, scores)
+
     def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
         if self._local_results:  # the first one runs while the whole robot is starting: not a measure
             self.local_service.add(service if service is not None else rtt)

@@ -30,6 +30,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from zoffload.policy.smoothing import MovingAverage
 
 LOCAL, EDGE, HOLD = "local", "edge", "hold"  # hold: the frame is held back (dropped_window)
@@ -105,6 +107,9 @@ class Strategy:
 
     def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:  # noqa: B027
         pass
+
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:  # noqa: B027
+        """A frame's detections (persons), from ``local`` or ``edge`` (a copy's answer too)."""
 
     def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
         """The edge answered without detections (``dropped``: a newer frame of ours came behind it,

@@ -493,7 +493,8 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
         from zoffload.detect.detector import Detector
 
         detector = Detector(p.local_model, p.local_model_path, threads=p.local_threads)
-    dispatch = ({"max_age": p.max_age, "local_bias": p.local_bias, "refresh_period": p.refresh_period,
+    dispatch = ({"max_age": p.max_age, "local_bias": p.local_bias, "learn_bias": p.learn_bias,
+                 "refresh_period": p.refresh_period,
                  "retry_period": p.retry_period, "base_period": p.base_period, "cpu_share": p.cpu_share}
                 if p.strategy == "dispatch" else {})
     strategy = make_strategy(p.strategy, p.cpu_max, p.bw_max_mbps or math.inf, p.max_in_flight, **dispatch)

@@ -249,6 +249,7 @@ class FrameBook:
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "local_done")
         self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
+        self.strategy.observe(seq, LOCAL, boxes, scores)
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
                     boxes: np.ndarray, scores: np.ndarray, edge: str | None = None,
@@ -278,6 +279,7 @@ class FrameBook:
             self.counters["copies_answered"] += 1
             if status == "ok":
                 self.strategy.on_edge_result(now - rec["capture"], reply)
+                self.strategy.observe(seq, EDGE, boxes, scores)
             else:
                 self.strategy.on_edge_refused(reply, self.rules.reply_timeout)
             return "copy"
@@ -293,6 +295,7 @@ class FrameBook:
         self.finish(seq, "edge_done")
         self.per_edge[str(rec.get("edge") or edge or "")] += 1
         self.strategy.on_edge_result(rtt, reply)
+        self.strategy.observe(seq, EDGE, boxes, scores)
         if rec.get("probe"):
             self._probe_answered(now - sent, now)
         return "edge_done"
@@ -472,6 +475,7 @@ class FrameBook:
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
             "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
             "edge_drains": getattr(self.strategy, "drains", None),  # dispatch's drains to measure the base
+            "local_bias": getattr(self.strategy, "bias_summary", lambda: None)(),  # dispatch's, learnt or set
             "encodings": self.encodings.summary(),
             # answers stamped with the frame's arrival (codec version 4), the link samples taken
             # from them, and how often another edge clock made the link clock start again

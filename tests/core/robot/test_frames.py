@@ -174,6 +174,10 @@ class Scripted(Strategy):
         self.states: list[OffloadState] = []
         self.replies: list[EdgeReply] = []
         self.timeouts: list[float] = []
+        self.seen: list[tuple[int, str, int]] = []  # (frame, side, persons) of every answer
+
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:
+        self.seen.append((seq, side, len(scores)))
 
     def choose(self, st: OffloadState) -> str:
         self.states.append(st)
@@ -219,6 +223,8 @@ def test_skipped_frames_and_copies_each_end_in_one_bucket() -> None:
     assert b.balanced() and bal["pending"] == 0 and bal["skipped"] == 1 and bal["local_done"] == 3
     assert bal["edge_lost"] == 1 and bal["frames_in"] == 5
     assert b.counters["copies_answered"] == 1
+    # every answer's detections reach the strategy (the copy's too: the edge's view of that frame)
+    assert s.seen == [(1, EDGE, len(ONE[1])), (1, LOCAL, len(ONE[1])), (2, LOCAL, 0), (3, LOCAL, 0)]
 
 
 def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:
