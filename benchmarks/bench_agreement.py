@@ -72,7 +72,7 @@ def main() -> None:
         cpus = []
         print(f"\n{name}, {n} frames, {args.local_share:.0%} answered locally")
         for seed in range(3):
-            cpu, bias = stream(edge, local, args.local_share, seed, Agreement(keep=1000, min_pairs=30))
+            cpu, bias = stream(edge, local, args.local_share, seed, Agreement())
             cpus += cpu
             print(f"  seed {seed}: bias every 10 s (periods) " + " ".join(f"{b:.2f}" for b in bias))
         cpus.sort()

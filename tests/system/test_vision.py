@@ -327,10 +327,11 @@ def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir:
     assert det["counts"].sum() > 0 and len(det["seqs"]) == b["local_done"] + b["edge_done"]
     # learn_bias: every edge answer with detections (a frame's or a copy's) was compared
     lb = m["local_bias"]
-    assert lb["learn"] is True and lb["set_s"] == 0.04 and 0 <= lb["used_s"] <= 0.3
+    assert lb["learn"] is True and lb["set_s"] == 0.04
+    assert lb["used_s"] is None or 0 <= lb["used_s"] <= 0.3  # None: no frame was the local side's to weigh
     assert b["edge_done"] <= lb["edge_answers"] <= b["edge_done"] + m["other"].get("copies_answered", 0)
-    if lb["edge_answers"] >= 25:  # curves read every 25 answers: the edge agrees with itself
-        assert len(lb["edge_curve"]) == 6 and lb["edge_curve"][0] == 1.0
+    if lb["edge_answers"] >= 100:  # curves read every 50 answers: the edge's answers one frame apart
+        assert 0 < lb["edge_curve"][1] <= 1, lb
 
 
 def test_edge_answers_bad_frames_and_robot_counts_unknown_results(free_port: int, models_dir: Path) -> None:

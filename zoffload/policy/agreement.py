@@ -10,24 +10,23 @@ images is wrong on the other (docs/perception-log.md: "The local bias, measured 
 
 Without ground truth the robot still has a judge it trusts more than its own detector: the edge's.
 Every edge answer for frame ``s`` stands as the truth (its detections scored at least
-``truth_score``) for the answers to the frames just before it, ``s - k`` for ``k`` up to ``span``:
+``truth_score``) for the answers to the frames before it, ``s - k``:
 
-* the edge's own earlier answers: how the stronger model's answer ages, ``A_edge(k)`` (100 % at
-  ``k = 0``: an answer agrees with itself);
-* the local detector's answers (and, at ``k = 0``, the frames detected locally whose copy went to
-  the edge): ``A_local(k)``.
+* the edge's own earlier answers (``k`` from 1 to ``edge_span``): how the stronger model's answer
+  ages, ``A_edge(k)`` (1 at ``k = 0``: an answer agrees with itself);
+* the local detector's answers (``k`` from 0, a frame detected locally whose copy went to the
+  edge, to ``span``): ``A_local(k)``.
 
-Each is an AP50 over the recent pairs, COCO's way (``average_precision``: score-ranked, so the two
+Each is an AP50 over the recent pairs, COCO's way (``precision_recall_ap``: score-ranked, so the two
 models' score scales need not match). A local answer ``k`` frames old agrees with the edge as much
 as an edge answer ``j`` frames old does, where the edge's curve crosses ``A_local(k)``; ``j - k``,
-averaged over the ``k`` with enough pairs, is how many periods later the edge may finish and still
-be the better choice: the bias. Offline on the cached detections of both halves the estimate is
-2.5-2.9 periods (the edge agrees with itself better than with the truth, so it overstates the
-edge's lead where the models are close; on the tuning half a bias of 0.1 s, 2.5 periods, scored as
-the tuned 0.04 s did).
+averaged over the ``k`` with enough pairs, is how many frames later the edge may finish and still
+be the better choice: the bias. It measures agreement, not accuracy: the edge agrees with itself
+better than with the truth (``benchmarks/bench_agreement.py`` prints the estimate on each half of
+the COCO clips beside what the ground truth says).
 
-Cost: pairs are matched once, when the later answer arrives (a few boxes each); the curves are
-re-read every ``every`` edge answers from the kept pairs (a sort of a few thousand scores).
+Cost: pairs are matched once, when the second answer of the two arrives (at most ``max_boxes``
+boxes each); the curves are re-read every ``every`` edge answers from the kept pairs.
 """
 
 from __future__ import annotations
@@ -35,6 +34,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -99,12 +99,11 @@ def precision_recall_ap(scores: Sequence[np.ndarray], tps: Sequence[np.ndarray],
 def crossing(lags: np.ndarray, curve: np.ndarray, a: float) -> float:
     """Where the non-increasing ``curve`` (at ``lags``) falls to ``a``, linearly between its points;
     the middle of a stretch where it equals ``a``; its first or last lag beyond its ends."""
-    if a >= curve[0]:
+    if a > curve[0]:
         return float(lags[0])
-    if a <= curve[-1]:
-        flat = np.nonzero(curve == curve[-1])[0]
-        return float(lags[flat].mean()) if a == curve[-1] else float(lags[-1])
-    i = int(np.nonzero(curve <= a)[0][0])  # the first point at or below (i >= 1)
+    if a < curve[-1]:
+        return float(lags[-1])
+    i = int(np.nonzero(curve <= a)[0][0])  # the first point at or below
     if curve[i] == a:  # on a point: the middle of the points equal to it
         return float(lags[curve == a].mean())
     hi, lo = curve[i - 1], curve[i]
@@ -114,24 +113,48 @@ def crossing(lags: np.ndarray, curve: np.ndarray, a: float) -> float:
 Pair = tuple[np.ndarray, np.ndarray, int]  # matched scores, true positives, truth boxes
 
 
+@dataclass
+class Answer:
+    seq: int
+    side: str
+    boxes: np.ndarray
+    scores: np.ndarray
+    truth: np.ndarray | None  # an edge answer's sure boxes (None: a local answer)
+
+
 class Agreement:
     """The local detector's worth in edge periods (module docstring): feed it every answer
-    (``observe``), read ``offset`` (camera periods; NaN until enough pairs)."""
+    (``observe``), read ``offset`` (camera periods; NaN until enough pairs).
 
-    def __init__(self, span: int = 5, keep: int = 200, min_pairs: int = 40, every: int = 25,
-                 truth_score: float = 0.5, max_boxes: int = 100) -> None:
-        self.span, self.min_pairs, self.every, self.truth_score = span, min_pairs, every, truth_score
-        self.max_boxes = max_boxes
-        self.recent: deque[tuple[int, str, np.ndarray, np.ndarray]] = deque(maxlen=4 * (span + 1))
+    Local answers are compared at ages 0 to ``span`` frames, the edge's own at 1 to ``edge_span``
+    (longer, so that a local detector much worse than the edge's still crosses its curve; one that
+    agrees less than the oldest edge answer measured counts at that age, and ``floor`` says so). A
+    pair is made whichever of the two answers comes second (a quarter-core robot's answer often
+    comes after the edge's answer to a later frame). ``keep`` pairs of each age at most; the curves
+    are re-read every ``every`` edge answers; an answer's ``max_boxes`` surest boxes at most."""
+
+    def __init__(self, span: int = 4, edge_span: int = 12, keep: int = 600, min_pairs: int = 30,
+                 every: int = 50, truth_score: float = 0.5, max_boxes: int = 30) -> None:
+        if edge_span < span:
+            raise ValueError(f"edge_span ({edge_span}) must be at least span ({span})")
+        self.span, self.edge_span, self.min_pairs, self.every = span, edge_span, min_pairs, every
+        self.truth_score, self.max_boxes = truth_score, max_boxes
+        self.recent: deque[Answer] = deque(maxlen=4 * (edge_span + 1))
         self.pairs: dict[tuple[str, int], deque[Pair]] = {
-            (side, k): deque(maxlen=keep) for side in (EDGE, LOCAL) for k in range(span + 1)}
+            **{(EDGE, k): deque(maxlen=keep) for k in range(1, edge_span + 1)},
+            **{(LOCAL, k): deque(maxlen=keep) for k in range(span + 1)}}
         self.offset = NAN
         self.weight = 0  # the local pairs behind the offset
+        self.floor = False  # some local age agreed less than the oldest edge answer measured
         self.curves: tuple[list[float], list[float]] = ([], [])  # the last estimate's A_edge, A_local
-        self.answers = 0
+        self.answers = 0  # edge answers compared
+        self.seq_period = NAN  # s between camera frames (seqs), from the answers' capture times
+        self._last: tuple[int, float] | None = None  # the newest (seq, capture) seen
 
-    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:
-        """An answer for frame ``seq`` from ``side`` (``edge``: a frame's or a copy's)."""
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray,
+                capture: float = NAN) -> None:
+        """An answer for frame ``seq`` (captured at ``capture``) from ``side`` (``edge``: a frame's
+        or a copy's)."""
         if side not in (EDGE, LOCAL) or len(boxes) != len(scores):
             return
         boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
@@ -139,17 +162,41 @@ class Agreement:
         if len(scores) > self.max_boxes:  # the surest ones: matching is quadratic in the boxes
             top = np.argsort(-scores, kind="stable")[:self.max_boxes]
             boxes, scores = boxes[top], scores[top]
+        self._period(seq, capture)
+        new = Answer(seq, side, boxes, scores, boxes[scores >= self.truth_score] if side == EDGE else None)
+        for old in self.recent:
+            self._pair(old, new)
+            self._pair(new, old)
         if side == EDGE:
-            truth = boxes[scores >= self.truth_score]
-            for s, other, b, sc in self.recent:
-                k = seq - s
-                if 0 <= k <= self.span and not (k == 0 and other == EDGE):
-                    found, tp = match(b, sc, truth)
-                    self.pairs[other, k].append((found, tp, len(truth)))
             self.answers += 1
             if self.answers % self.every == 0:
                 self.offset = self.estimate()
-        self.recent.append((seq, side, boxes, scores))
+        self.recent.append(new)
+        newest = max(a.seq for a in self.recent)
+        while self.recent and self.recent[0].seq < newest - self.edge_span:
+            self.recent.popleft()
+
+    def _pair(self, answer: Answer, judge: Answer) -> None:
+        """``answer`` scored against ``judge``'s truth, when the judge is an edge answer to the same
+        frame or a later one within the answer's side's ages (an edge answer is not its own judge)."""
+        if judge.truth is None:
+            return
+        k = judge.seq - answer.seq
+        ages = range(self.span + 1) if answer.side == LOCAL else range(1, self.edge_span + 1)
+        if k in ages:
+            found, tp = match(answer.boxes, answer.scores, judge.truth)
+            self.pairs[answer.side, k].append((found, tp, len(judge.truth)))
+
+    def _period(self, seq: int, capture: float) -> None:
+        if not math.isfinite(capture):
+            return
+        if self._last is not None and seq > self._last[0]:
+            gap = (capture - self._last[1]) / (seq - self._last[0])
+            if 0 < gap < 1.0:  # a clock step or a restart is no sample
+                self.seq_period = gap if math.isnan(self.seq_period) else self.seq_period + 0.05 * (
+                    gap - self.seq_period)
+        if self._last is None or seq > self._last[0]:
+            self._last = (seq, capture)
 
     def ap(self, side: str, k: int) -> float:
         """AP50 (0-1) of ``side``'s answers ``k`` frames old against the edge's (NaN: too few)."""
@@ -163,9 +210,10 @@ class Agreement:
     def estimate(self) -> float:
         """Periods the edge may be later than the local detector and still agree with the edge's
         fresh answers as well: the mean over ``k`` of where the edge's curve (made non-increasing)
-        crosses ``A_local(k)``, less ``k``, weighted by the pairs behind each; beyond the curve's
-        last known point, that point (the offset is then a floor). NaN until both are known."""
-        edge = [self.ap(EDGE, k) for k in range(self.span + 1)]
+        crosses ``A_local(k)``, less ``k``, weighted by the pairs behind each; below the curve's
+        last known point, that point (``floor``: the offset is then a lower bound). NaN until both
+        are known."""
+        edge = [self.ap(EDGE, k) for k in range(self.edge_span + 1)]
         local = [self.ap(LOCAL, k) for k in range(self.span + 1)]
         self.curves = (edge, local)
         known = [(k, a) for k, a in enumerate(edge) if math.isfinite(a)]
@@ -174,12 +222,13 @@ class Agreement:
         lags = np.array([k for k, _ in known], float)
         curve = np.minimum.accumulate(np.array([a for _, a in known]))
         total = weight = 0.0
+        self.floor = False
         for k, a in enumerate(local):
             if not math.isfinite(a):
                 continue
-            lag = crossing(lags, curve, a)
+            self.floor = self.floor or bool(a < curve[-1])
             n = len(self.pairs[LOCAL, k])
-            total += (lag - k) * n
+            total += (crossing(lags, curve, a) - k) * n
             weight += n
         self.weight = int(weight)
         return total / weight if weight else NAN

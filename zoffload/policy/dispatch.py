@@ -47,10 +47,10 @@ against 20.6). With ``learn_bias`` (off by default) the bias is measured online 
 (policy/agreement.py): each edge answer stands as the truth for the answers to the frames just
 before it, and the bias is how many camera periods older an edge answer may be and still agree
 with it as well as a local answer does, pulled towards ``local_bias`` while few answers were
-compared (``bias_prior`` pairs weigh as much as the prior). It measures the models' agreement,
-not their accuracy: within a 50 s run on the held-out images it wandered between 0.4 and 2.0
-periods and scored no better than the constant (docs/perception-log.md: "The local bias,
-measured online"). The bias is at most half of ``max_age``.
+compared (``bias_prior`` pairs weigh as much as the prior), and then at most half of ``max_age``.
+It measures the models' agreement, not their accuracy, and within a 50 s run on the held-out
+images it scored as the constant did (docs/perception-log.md: "The local bias, measured
+online").
 
 Each edge frame carries the recent share of frames the edge lost (timeouts,
 errors) times ``max_age``: the offloading thesis' failure was an edge whose few returning frames
@@ -188,7 +188,7 @@ class Dispatcher(Strategy):
     window: float = 4.0
     blocked: bool = False  # an edge frame went unanswered: no edge frames until an answer
     estimates: tuple[float, float] = (NAN, NAN)  # the last decision's finish times, local and edge
-    agreement: Agreement = field(default_factory=lambda: Agreement(keep=1000, min_pairs=30))
+    agreement: Agreement = field(default_factory=Agreement)
     bias_used: float = NAN  # s: the last decision's local bias
     frame_period: Ewma = field(default_factory=lambda: Ewma(0.1))  # between camera frames
     _last_capture: float = NAN
@@ -300,15 +300,18 @@ class Dispatcher(Strategy):
 
     def bias(self, period: float) -> float:
         """Seconds sooner the local detector must finish to take a frame: ``local_bias``, or with
-        ``learn_bias`` the learnt offset in camera periods, weighed against ``local_bias`` by the
-        pairs behind it (``bias_prior`` pairs: half and half); between 0 and half of ``max_age``."""
+        ``learn_bias`` the learnt offset in camera frames (at the camera's period: the gap between
+        frame numbers, which count the frames the camera dropped; else ``period``), weighed
+        against ``local_bias`` by the pairs behind it (``bias_prior`` pairs: half and half), and
+        then between 0 and half of ``max_age``."""
         offset = self.agreement.offset if self.learn_bias else NAN
         bias = self.local_bias
         if math.isfinite(offset):
+            per_frame = self.agreement.seq_period if math.isfinite(self.agreement.seq_period) else period
             w = self.agreement.weight / (self.agreement.weight + self.bias_prior)
-            bias += w * (offset * period - self.local_bias)
-        self.bias_used = min(max(bias, 0.0), 0.5 * self.max_age)
-        return self.bias_used
+            bias = min(max(bias + w * (offset * per_frame - bias), 0.0), 0.5 * self.max_age)
+        self.bias_used = bias
+        return bias
 
     def bias_summary(self) -> dict[str, object]:
         """The bias for the run's summary: as set, as learnt (periods, NaN: never known), the last
@@ -319,6 +322,7 @@ class Dispatcher(Strategy):
 
         edge, local = self.agreement.curves
         return {"set_s": self.local_bias, "learn": self.learn_bias, "edge_answers": self.agreement.answers,
+                "below_the_edge_curve": bool(self.agreement.floor),
                 "learnt_periods": known(self.agreement.offset),
                 "used_s": known(self.bias_used), "edge_curve": [known(a) for a in edge],
                 "local_curve": [known(a) for a in local]}
@@ -403,9 +407,10 @@ class Dispatcher(Strategy):
         return EDGE
 
     # Observations
-    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray,
+                capture: float = NAN) -> None:
         if self.learn_bias:
-            self.agreement.observe(seq, side, boxes, scores)
+            self.agreement.observe(seq, side, boxes, scores, capture)
 
     def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
         if self._local_results:  # the first one runs while the whole robot is starting: not a measure

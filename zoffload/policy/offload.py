@@ -108,8 +108,10 @@ class Strategy:
     def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:  # noqa: B027
         pass
 
-    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:  # noqa: B027
-        """A frame's detections (persons), from ``local`` or ``edge`` (a copy's answer too)."""
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray,  # noqa: B027
+                capture: float = NAN) -> None:
+        """A frame's detections (persons), from ``local`` or ``edge`` (a copy's answer too), and
+        when the frame was captured."""
 
     def on_edge_refused(self, reply: EdgeReply, penalty: float) -> None:
         """The edge answered without detections (``dropped``: a newer frame of ours came behind it,

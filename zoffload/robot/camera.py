@@ -446,7 +446,8 @@ class CameraOffloader:
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "vision_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
+        # a numpy number that slipped into the figures is written as the number, not a lost file
+        (out_dir / "vision_metrics.json").write_text(json.dumps(self.metrics(), indent=2, default=_plain))
         with self._lock:  # the pipeline has stopped: nothing changes the records any more
             self.book.log.write(out_dir, self.camera.period)
         if self.monitor is not None:
@@ -480,6 +481,13 @@ def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str
                                   width=w, height=h, data=data, edge=edge,
                                   camera_width=cam_w if shrunk else 0, camera_height=cam_h if shrunk else 0,
                                   reads=reads))
+
+
+def _plain(value: Any) -> Any:
+    """``json.dumps``'s fallback for numpy scalars (``np.bool_``, ``np.float32``...): their value."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

@@ -249,7 +249,7 @@ class FrameBook:
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "local_done")
         self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
-        self.strategy.observe(seq, LOCAL, boxes, scores)
+        self._observe(seq, LOCAL, boxes, scores, rec["capture"])
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,
                     boxes: np.ndarray, scores: np.ndarray, edge: str | None = None,
@@ -279,7 +279,7 @@ class FrameBook:
             self.counters["copies_answered"] += 1
             if status == "ok":
                 self.strategy.on_edge_result(now - rec["capture"], reply)
-                self.strategy.observe(seq, EDGE, boxes, scores)
+                self._observe(seq, EDGE, boxes, scores, rec["capture"])
             else:
                 self.strategy.on_edge_refused(reply, self.rules.reply_timeout)
             return "copy"
@@ -295,10 +295,20 @@ class FrameBook:
         self.finish(seq, "edge_done")
         self.per_edge[str(rec.get("edge") or edge or "")] += 1
         self.strategy.on_edge_result(rtt, reply)
-        self.strategy.observe(seq, EDGE, boxes, scores)
         if rec.get("probe"):
             self._probe_answered(now - sent, now)
+        self._observe(seq, EDGE, boxes, scores, rec["capture"])
         return "edge_done"
+
+    def _observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray, capture: float) -> None:
+        """The answer's detections to the strategy, last (the frame is booked whatever it does): a
+        failure there is logged and counted, never the caller's (a Zenoh callback, the detector)."""
+        try:
+            self.strategy.observe(seq, side, boxes, scores, capture)
+        except Exception as exc:
+            self.counters["observe_errors"] += 1
+            if self.counters["observe_errors"] <= 10:
+                log.warning("the strategy could not take frame %d's detections: %s", seq, exc)
 
     def _reply(self, rec: dict[str, Any], sent: float, now: float, service: float, queued_at_edge: float,
                status: str, edge: str, arrival: float) -> EdgeReply:

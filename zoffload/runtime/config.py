@@ -255,13 +255,11 @@ class PerceptionSettings(_Strict):
     )
     local_bias: float = Field(
         default=0.04, ge=0,
-        description="dispatch: seconds sooner the robot must finish a frame to take it (lighter model); "
-                    "with learn_bias, the prior of the measured one",
+        description="dispatch: seconds sooner the robot must finish a frame to take it (learn_bias: prior)",
     )
     learn_bias: bool = Field(
         default=False,
-        description="dispatch: measure the local bias online, from how well each side's answers agree with "
-                    "the edge's later ones (reported as local_bias in vision_metrics.json)",
+        description="dispatch: learn local_bias from how well each side agrees with the edge's later answers",
     )
     refresh_period: float = Field(
         default=1.0, gt=0,

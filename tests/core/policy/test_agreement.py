@@ -3,6 +3,7 @@ dispatcher's use of it."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -11,25 +12,29 @@ import pytest
 from zoffload.policy.agreement import EDGE, LOCAL, Agreement, crossing, match, precision_recall_ap
 from zoffload.policy.dispatch import Dispatcher
 
-SPEEDS = np.arange(0, 50, 5)  # px per frame: ten people, from still to fast
+# px per frame of 28 people 100 px wide: two still, and 26 whose box overlaps its old place by
+# IoU 0.5 for 0.75, 1.25, ... 13.25 frames (an answer about them agrees for that long), so the
+# agreement falls at every age and has no plateau to be read either way
+SPEEDS = np.concatenate([[0.0, 0.0], 100 / (3 * (0.75 + 0.5 * np.arange(26)))])
 
 
 def scene(seq: int, every: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Ten 100 px boxes, each moving at its own speed (a detector that sees every ``every``-th)."""
+    """The people's boxes in frame ``seq``, each moving at its own speed (a detector that sees every
+    ``every``-th)."""
     x = 20.0 + SPEEDS * seq
     rows = np.arange(len(SPEEDS)) * 120.0
     boxes = np.stack([x, rows, x + 100, rows + 100], axis=1)[::every]
     return boxes, np.linspace(0.9, 0.6, len(boxes))
 
 
-def feed(agreement: Agreement, local: int | None, frames: int = 600) -> None:
-    """Every third frame to the local detector (``local``: which boxes it sees; None: none), the rest
-    to the edge, which sees them all."""
+def feed(agreement: Agreement, local: int | None, frames: int = 600, late: int = 0) -> None:
+    """Every third frame to the local detector (``local``: which boxes it sees; None: none; ``late``:
+    it sees the scene that many frames back), the rest to the edge, which sees them all."""
     for seq in range(frames):
         if seq % 3 == 0 and local is not None:
-            agreement.observe(seq, LOCAL, *scene(seq, local))
+            agreement.observe(seq, LOCAL, *scene(seq - late, local), capture=0.04 * seq)
         else:
-            agreement.observe(seq, EDGE, *scene(seq))
+            agreement.observe(seq, EDGE, *scene(seq), capture=0.04 * seq)
 
 
 def test_matching_is_cocos_greedy_by_score() -> None:
@@ -49,15 +54,34 @@ def test_a_local_detector_as_good_as_the_edges_needs_no_bias() -> None:
     edge, local = a.curves
     assert edge[0] == 1.0 and edge[1] > edge[3]  # older answers agree less
     assert local[1] == pytest.approx(edge[1], abs=0.02)
-    assert a.offset == pytest.approx(0.0, abs=0.1)
+    assert a.offset == pytest.approx(0.0, abs=0.1) and not a.floor
+    assert a.seq_period == pytest.approx(0.04)
 
 
 def test_a_local_detector_that_misses_people_must_finish_periods_sooner() -> None:
     a = Agreement(min_pairs=20, every=10)
     feed(a, local=2)  # sees every other person
     edge, local = a.curves
-    assert all(lo < e for lo, e in zip(local[1:], edge[1:], strict=True) if math.isfinite(lo))
-    assert 0.5 < a.offset <= a.span
+    assert all(lo < e for lo, e in zip(local[1:], edge[1:], strict=False) if math.isfinite(lo))
+    assert 1 < a.offset < a.edge_span and not a.floor  # beyond the ages local answers are compared at
+
+
+@pytest.mark.parametrize("late", [1, 2, 4, 6])
+def test_a_local_detector_that_sees_the_scene_late_is_worth_that_many_frames(late: int) -> None:
+    # the robot's answers are the edge's view of ``late`` frames before: the estimate finds the lag,
+    # beyond the ages the local answers are compared at (4)
+    a = Agreement(min_pairs=20, every=10)
+    feed(a, local=1, frames=900, late=late)
+    assert a.offset == pytest.approx(late, abs=0.35) and not a.floor
+
+
+def test_a_local_answer_that_comes_after_the_edges_later_one_is_still_compared() -> None:
+    a = Agreement(min_pairs=1, every=1)
+    a.observe(11, EDGE, *scene(11))  # the edge answers frame 11 first
+    a.observe(10, LOCAL, *scene(10))  # the robot's answer to frame 10 comes after
+    a.observe(10, EDGE, *scene(10))  # and a copy of frame 10: the edge's view of the same frame
+    assert len(a.pairs[LOCAL, 1]) == 1 and len(a.pairs[LOCAL, 0]) == 1 and len(a.pairs[EDGE, 1]) == 1
+    assert len(a.pairs[EDGE, 1][0][0]) == len(SPEEDS)  # frame 10's edge answer judged by frame 11's
 
 
 def test_no_estimate_without_enough_pairs_of_both() -> None:
@@ -78,9 +102,9 @@ def test_memory_is_bounded_and_bad_answers_are_ignored() -> None:
     a.observe(3000, EDGE, np.zeros((2, 4)), np.zeros(3))  # boxes and scores that do not pair up
     a.observe(3001, "elsewhere", *scene(3001))
     a.observe(3002, LOCAL, np.full((1, 4), np.nan), np.array([np.nan]))  # NaN boxes match nothing
-    crowd = np.tile(scene(3003)[0], (100, 1)), np.linspace(1.0, 0.01, 1000)  # a thousand boxes
+    crowd = np.resize(scene(3003)[0], (1000, 4)), np.linspace(1.0, 0.01, 1000)  # a thousand boxes
     a.observe(3003, EDGE, *crowd)
-    assert len(a.recent[-1][3]) == a.max_boxes and a.recent[-1][3][0] == 1.0  # the surest hundred kept
+    assert len(a.recent[-1].scores) == a.max_boxes and a.recent[-1].scores[0] == 1.0  # the surest kept
     for seq in range(3004, 3004 + 300):  # the crowd's pairs leave the banks in time
         a.observe(seq, LOCAL if seq % 3 == 0 else EDGE, *scene(seq))
     assert math.isfinite(a.offset) and a.offset == pytest.approx(before, abs=0.1)
@@ -91,6 +115,9 @@ def test_the_dispatcher_weighs_the_learnt_bias_by_the_pairs_behind_it() -> None:
     assert d.bias(0.04) == 0.04  # nothing learnt yet: as set
     d.agreement.offset, d.agreement.weight = 3.0, 100
     assert d.bias(0.04) == pytest.approx(0.08)  # three periods (0.12 s) on 100 pairs, half and half
+    d.agreement.seq_period = 0.02  # the frame numbers say 50 a second (the loop saw every other)
+    assert d.bias(0.04) == pytest.approx(0.05)
+    d.agreement.seq_period = float("nan")
     d.agreement.weight = 100_000
     assert d.bias(0.04) == pytest.approx(0.12, abs=1e-4)
     d.agreement.offset = 100.0
@@ -101,9 +128,15 @@ def test_the_dispatcher_weighs_the_learnt_bias_by_the_pairs_behind_it() -> None:
     assert summary["learnt_periods"] == -10.0 and summary["used_s"] == 0.0 and summary["set_s"] == 0.04
     d.observe(1, EDGE, *scene(1))
     assert d.agreement.recent
+    learnt = Dispatcher(learn_bias=True)  # a real estimate's summary is JSON (numpy values are not)
+    feed(learnt.agreement, local=2, frames=300)
+    learnt.bias(0.04)
+    out = json.loads(json.dumps(learnt.bias_summary(), allow_nan=False))
+    assert out["learnt_periods"] > 0 and out["below_the_edge_curve"] is False and len(out["edge_curve"]) == 13
     fixed = Dispatcher(local_bias=0.04)  # the default: the bias as set, nothing measured
     fixed.agreement.offset, fixed.agreement.weight = 2.0, 1000
     assert fixed.bias(0.04) == 0.04
+    assert Dispatcher(local_bias=0.5).bias(0.04) == 0.5  # a bias as set is not capped
     fixed.observe(1, EDGE, *scene(1))
     assert not fixed.agreement.recent
     assert fixed.bias_summary()["learnt_periods"] == 2.0 and not fixed.bias_summary()["learn"]
@@ -115,3 +148,5 @@ def test_the_crossing_interpolates_and_takes_the_middle_of_a_plateau() -> None:
     assert crossing(lags, curve, 0.8) == pytest.approx(1.5)
     assert crossing(lags, curve, 0.65) == pytest.approx(2.5)
     assert crossing(lags, curve, 0.4) == 3.0 and crossing(lags, curve, 1.2) == 0.0
+    flat = np.array([1.0, 1.0, 0.5, 0.5])  # a still scene: the edge agrees with itself a while
+    assert crossing(lags, flat, 1.0) == pytest.approx(0.5) and crossing(lags, flat, 0.5) == pytest.approx(2.5)

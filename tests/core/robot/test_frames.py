@@ -175,8 +175,12 @@ class Scripted(Strategy):
         self.replies: list[EdgeReply] = []
         self.timeouts: list[float] = []
         self.seen: list[tuple[int, str, int]] = []  # (frame, side, persons) of every answer
+        self.broken = False  # observe raises
 
-    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray) -> None:
+    def observe(self, seq: int, side: str, boxes: np.ndarray, scores: np.ndarray,
+                capture: float = math.nan) -> None:
+        if self.broken:
+            raise RuntimeError("broken")
         self.seen.append((seq, side, len(scores)))
 
     def choose(self, st: OffloadState) -> str:
@@ -225,6 +229,19 @@ def test_skipped_frames_and_copies_each_end_in_one_bucket() -> None:
     assert b.counters["copies_answered"] == 1
     # every answer's detections reach the strategy (the copy's too: the edge's view of that frame)
     assert s.seen == [(1, EDGE, len(ONE[1])), (1, LOCAL, len(ONE[1])), (2, LOCAL, 0), (3, LOCAL, 0)]
+
+
+def test_a_strategy_that_fails_on_detections_costs_the_frame_nothing() -> None:
+    s = Scripted([EDGE, LOCAL])
+    s.broken = True
+    b = book(s)
+    for seq, side in enumerate((EDGE, LOCAL)):
+        assert b.decide(seq, seq, capture=0.1 * seq, now=0.1 * seq)[0] == side
+    b.sent(0, 0.0, False)
+    assert b.edge_result(0, "ok", 0.2, 0.05, 0.0, *ONE) == "edge_done"
+    b.local_result(1, 0.3, service=0.02, infer_time=0.02, boxes=ONE[0], scores=ONE[1])
+    assert b.records[0]["status"] == "edge_done" and b.records[1]["status"] == "local_done"
+    assert b.counters["observe_errors"] == 2 and b.balanced() and len(s.replies) == 1
 
 
 def test_the_strategy_sees_the_frames_in_flight_and_the_robot_side() -> None:

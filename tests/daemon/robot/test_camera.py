@@ -3,18 +3,20 @@ edge (a session that answers frames): no model files needed."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from typing import Any
 
 import numpy as np
+import pytest
 import zenoh
 
 from tests.helpers import KEYS, client, listen_on, wait_for
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import make_strategy
 from zoffload.protocol import wire
-from zoffload.robot.camera import CameraOffloader, CameraOptions
+from zoffload.robot.camera import CameraOffloader, CameraOptions, _plain
 from zoffload.robot.frames import FallbackRules
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings
@@ -213,3 +215,12 @@ def test_previews_go_out_a_few_times_a_second_only_while_someone_watches(free_po
         img = cv2.imdecode(m.jpeg, cv2.IMREAD_COLOR)
         assert img is not None and img.shape[:2] == (m.height, m.width) == (48, 64)
     assert {m.side for _, m in viewer.got} == {"local", "edge"}
+
+
+def test_numpy_numbers_in_the_figures_are_written_as_numbers() -> None:
+    # a numpy bool in the summary once lost a whole run's vision_metrics.json at shutdown
+    figures = {"a": np.bool_(True), "b": np.float32(1.5), "c": np.int64(3)}
+    out = json.loads(json.dumps(figures, default=_plain))
+    assert out == {"a": True, "b": 1.5, "c": 3}
+    with pytest.raises(TypeError, match="object"):  # a value that is no number is still refused
+        json.dumps({"x": object()}, default=_plain)
