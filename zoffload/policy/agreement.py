@@ -26,7 +26,9 @@ better than with the truth (``benchmarks/bench_agreement.py`` prints the estimat
 the COCO clips beside what the ground truth says).
 
 Cost: pairs are matched once, when the second answer of the two arrives (at most ``max_boxes``
-boxes each); the curves are re-read every ``every`` edge answers from the kept pairs.
+boxes each), and counted by score bin as they enter and leave an age's bank (``Bank``); the curves
+are re-read every ``every`` edge answers from the bins (``binned_ap``: the pooled AP with the
+scores of one bin, 1/256 wide, taken as tied), so a re-read costs the same however many pairs.
 """
 
 from __future__ import annotations
@@ -110,7 +112,64 @@ def crossing(lags: np.ndarray, curve: np.ndarray, a: float) -> float:
     return float(lags[i - 1] + (hi - a) / (hi - lo) * (lags[i] - lags[i - 1]))
 
 
-Pair = tuple[np.ndarray, np.ndarray, int]  # matched scores, true positives, truth boxes
+SCORE_BINS = 256  # a bank's scores are counted in this many equal bins of [0, 1]
+
+
+def binned_ap(hits: np.ndarray, misses: np.ndarray, n_gt: int) -> float:
+    """``precision_recall_ap`` of detections counted by score bin (``hits``: true positives per
+    bin, ``misses``: false positives, lowest bin first): the same curve, with the detections of
+    one bin taken as tied. NaN without truth, 0 without detections."""
+    if n_gt <= 0:
+        return NAN
+    tp, fp = np.cumsum(hits[::-1]), np.cumsum(misses[::-1])  # surest bin first
+    seen = tp + fp > 0
+    if not seen.any():
+        return 0.0
+    recall, precision = tp[seen] / n_gt, tp[seen] / (tp[seen] + fp[seen])
+    precision = np.maximum.accumulate(precision[::-1])[::-1]  # the precision envelope
+    idx = np.searchsorted(recall, np.linspace(0, 1, 101), side="left")
+    return float(np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0).mean())
+
+
+class Bank:
+    """The last ``keep`` matched pairs of one age, counted by score bin as they come and go, so that
+    their pooled AP costs a pass over the bins, not a sort of every score."""
+
+    def __init__(self, keep: int) -> None:
+        # each pair as the codes of its detections (score bin × 2 + whether a true positive: one
+        # small array, nothing for the garbage collector to walk) and its truth boxes
+        self.pairs: deque[tuple[np.ndarray, int]] = deque()
+        self.keep = keep
+        self.counts = [0] * (2 * SCORE_BINS)  # per code: detections
+        self.n_gt = 0
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    @property
+    def hits(self) -> np.ndarray:
+        return np.array(self.counts[1::2])
+
+    @property
+    def misses(self) -> np.ndarray:
+        return np.array(self.counts[0::2])
+
+    def add(self, scores: np.ndarray, tp: np.ndarray, n_gt: int) -> None:
+        bins = np.clip((np.nan_to_num(scores) * SCORE_BINS).astype(np.int16), 0, SCORE_BINS - 1)
+        pair = (2 * bins + tp, n_gt)
+        self._count(pair, 1)
+        self.pairs.append(pair)
+        if len(self.pairs) > self.keep:
+            self._count(self.pairs.popleft(), -1)
+
+    def _count(self, pair: tuple[np.ndarray, int], sign: int) -> None:
+        counts = self.counts
+        for code in pair[0].tolist():  # a few boxes: plain Python is quicker than numpy's scatter
+            counts[code] += sign
+        self.n_gt += sign * pair[1]
+
+    def ap(self) -> float:
+        return binned_ap(self.hits, self.misses, self.n_gt)
 
 
 @dataclass
@@ -140,9 +199,9 @@ class Agreement:
         self.span, self.edge_span, self.min_pairs, self.every = span, edge_span, min_pairs, every
         self.truth_score, self.max_boxes = truth_score, max_boxes
         self.recent: deque[Answer] = deque(maxlen=4 * (edge_span + 1))
-        self.pairs: dict[tuple[str, int], deque[Pair]] = {
-            **{(EDGE, k): deque(maxlen=keep) for k in range(1, edge_span + 1)},
-            **{(LOCAL, k): deque(maxlen=keep) for k in range(span + 1)}}
+        self.pairs: dict[tuple[str, int], Bank] = {
+            **{(EDGE, k): Bank(keep) for k in range(1, edge_span + 1)},
+            **{(LOCAL, k): Bank(keep) for k in range(span + 1)}}
         self.offset = NAN
         self.weight = 0  # the local pairs behind the offset
         self.floor = False  # some local age agreed less than the oldest edge answer measured
@@ -185,7 +244,7 @@ class Agreement:
         ages = range(self.span + 1) if answer.side == LOCAL else range(1, self.edge_span + 1)
         if k in ages:
             found, tp = match(answer.boxes, answer.scores, judge.truth)
-            self.pairs[answer.side, k].append((found, tp, len(judge.truth)))
+            self.pairs[answer.side, k].add(found, tp, len(judge.truth))
 
     def _period(self, seq: int, capture: float) -> None:
         if not math.isfinite(capture):
@@ -202,10 +261,8 @@ class Agreement:
         """AP50 (0-1) of ``side``'s answers ``k`` frames old against the edge's (NaN: too few)."""
         if side == EDGE and k == 0:
             return 1.0
-        pairs = self.pairs[side, k]
-        if len(pairs) < self.min_pairs:
-            return NAN
-        return precision_recall_ap([p[0] for p in pairs], [p[1] for p in pairs], sum(p[2] for p in pairs))
+        bank = self.pairs[side, k]
+        return bank.ap() if len(bank) >= self.min_pairs else NAN
 
     def estimate(self) -> float:
         """Periods the edge may be later than the local detector and still agree with the edge's

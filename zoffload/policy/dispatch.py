@@ -49,8 +49,8 @@ before it, and the bias is how many camera periods older an edge answer may be a
 with it as well as a local answer does, pulled towards ``local_bias`` while few answers were
 compared (``bias_prior`` pairs weigh as much as the prior), and then at most half of ``max_age``.
 It measures the models' agreement, not their accuracy, and within a 50 s run on the held-out
-images it scored as the constant did (docs/perception-log.md: "The local bias, measured
-online").
+images it scored no better than the constant (0.8 lower on Wi-Fi, level on the other links;
+docs/perception-log.md: "The local bias, measured online").
 
 Each edge frame carries the recent share of frames the edge lost (timeouts,
 errors) times ``max_age``: the offloading thesis' failure was an edge whose few returning frames

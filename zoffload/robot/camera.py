@@ -446,8 +446,7 @@ class CameraOffloader:
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        # a numpy number that slipped into the figures is written as the number, not a lost file
-        (out_dir / "vision_metrics.json").write_text(json.dumps(self.metrics(), indent=2, default=_plain))
+        write_figures(out_dir / "vision_metrics.json", self.metrics())
         with self._lock:  # the pipeline has stopped: nothing changes the records any more
             self.book.log.write(out_dir, self.camera.period)
         if self.monitor is not None:
@@ -488,6 +487,12 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
+
+
+def write_figures(path: Path, figures: dict[str, Any]) -> None:
+    """The run's figures as JSON: a numpy number that slipped into them is written as the number
+    (a numpy bool once lost a whole run's file at shutdown)."""
+    path.write_text(json.dumps(figures, indent=2, default=_plain))
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

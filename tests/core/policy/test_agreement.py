@@ -9,7 +9,16 @@ import math
 import numpy as np
 import pytest
 
-from zoffload.policy.agreement import EDGE, LOCAL, Agreement, crossing, match, precision_recall_ap
+from zoffload.policy.agreement import (
+    EDGE,
+    LOCAL,
+    Agreement,
+    Bank,
+    binned_ap,
+    crossing,
+    match,
+    precision_recall_ap,
+)
 from zoffload.policy.dispatch import Dispatcher
 
 # px per frame of 28 people 100 px wide: two still, and 26 whose box overlaps its old place by
@@ -48,6 +57,21 @@ def test_matching_is_cocos_greedy_by_score() -> None:
     assert precision_recall_ap([], [], 3) == 0.0
 
 
+def test_the_binned_ap_is_the_pooled_ap_within_a_point() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        frames = [(rng.random(rng.integers(0, 12)), rng.random(12) < 0.6) for _ in range(200)]
+        scores = [s for s, _ in frames]
+        tps = [tp[:len(s)] for s, tp in frames]
+        n_gt = sum(int(tp.sum()) for tp in tps) + int(rng.integers(0, 100))
+        bank = Bank(keep=1000)
+        for s, tp in zip(scores, tps, strict=True):
+            bank.add(s, tp, 0)
+        bank.n_gt = n_gt
+        assert bank.ap() == pytest.approx(precision_recall_ap(scores, tps, n_gt), abs=0.01)
+    assert math.isnan(Bank(5).ap()) and binned_ap(np.zeros(4), np.zeros(4), 3) == 0.0
+
+
 def test_a_local_detector_as_good_as_the_edges_needs_no_bias() -> None:
     a = Agreement(min_pairs=20, every=10)
     feed(a, local=1)
@@ -63,7 +87,7 @@ def test_a_local_detector_that_misses_people_must_finish_periods_sooner() -> Non
     feed(a, local=2)  # sees every other person
     edge, local = a.curves
     assert all(lo < e for lo, e in zip(local[1:], edge[1:], strict=False) if math.isfinite(lo))
-    assert 1 < a.offset < a.edge_span and not a.floor  # beyond the ages local answers are compared at
+    assert a.span < a.offset < a.edge_span and not a.floor  # beyond the ages local answers are compared at
 
 
 @pytest.mark.parametrize("late", [1, 2, 4, 6])
@@ -81,7 +105,7 @@ def test_a_local_answer_that_comes_after_the_edges_later_one_is_still_compared()
     a.observe(10, LOCAL, *scene(10))  # the robot's answer to frame 10 comes after
     a.observe(10, EDGE, *scene(10))  # and a copy of frame 10: the edge's view of the same frame
     assert len(a.pairs[LOCAL, 1]) == 1 and len(a.pairs[LOCAL, 0]) == 1 and len(a.pairs[EDGE, 1]) == 1
-    assert len(a.pairs[EDGE, 1][0][0]) == len(SPEEDS)  # frame 10's edge answer judged by frame 11's
+    assert len(a.pairs[EDGE, 1].pairs[0][0]) == len(SPEEDS)  # frame 10's edge answer judged by frame 11's
 
 
 def test_no_estimate_without_enough_pairs_of_both() -> None:
@@ -96,11 +120,17 @@ def test_no_estimate_without_enough_pairs_of_both() -> None:
 def test_memory_is_bounded_and_bad_answers_are_ignored() -> None:
     a = Agreement(keep=50, min_pairs=10, every=5)
     feed(a, local=1, frames=2000)
-    assert all(len(p) <= 50 for p in a.pairs.values())
-    assert len(a.recent) <= a.recent.maxlen  # type: ignore[operator]
-    before = a.offset
+    # a bank's counts are those of the pairs it holds (the evicted ones taken off)
+    bank = a.pairs[EDGE, 1]
+    assert len(bank) == 50 and bank.hits.sum() + bank.misses.sum() == sum(len(p[0]) for p in bank.pairs)
+    assert bank.hits.sum() == sum(int((p[0] % 2).sum()) for p in bank.pairs)
+    assert bank.n_gt == sum(p[1] for p in bank.pairs)
+    seqs = [x.seq for x in a.recent]
+    assert max(seqs) - min(seqs) <= a.edge_span  # only the answers that can still pair are kept
+    before, answers, kept = a.offset, a.answers, len(a.recent)
     a.observe(3000, EDGE, np.zeros((2, 4)), np.zeros(3))  # boxes and scores that do not pair up
     a.observe(3001, "elsewhere", *scene(3001))
+    assert (a.answers, len(a.recent)) == (answers, kept)  # both ignored
     a.observe(3002, LOCAL, np.full((1, 4), np.nan), np.array([np.nan]))  # NaN boxes match nothing
     crowd = np.resize(scene(3003)[0], (1000, 4)), np.linspace(1.0, 0.01, 1000)  # a thousand boxes
     a.observe(3003, EDGE, *crowd)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,7 @@ from tests.helpers import KEYS, client, listen_on, wait_for
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import make_strategy
 from zoffload.protocol import wire
-from zoffload.robot.camera import CameraOffloader, CameraOptions, _plain
+from zoffload.robot.camera import CameraOffloader, CameraOptions, write_figures
 from zoffload.robot.frames import FallbackRules
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings
@@ -217,10 +218,10 @@ def test_previews_go_out_a_few_times_a_second_only_while_someone_watches(free_po
     assert {m.side for _, m in viewer.got} == {"local", "edge"}
 
 
-def test_numpy_numbers_in_the_figures_are_written_as_numbers() -> None:
-    # a numpy bool in the summary once lost a whole run's vision_metrics.json at shutdown
-    figures = {"a": np.bool_(True), "b": np.float32(1.5), "c": np.int64(3)}
-    out = json.loads(json.dumps(figures, default=_plain))
-    assert out == {"a": True, "b": 1.5, "c": 3}
+def test_numpy_numbers_in_the_figures_are_written_as_numbers(tmp_path: Path) -> None:
+    # what write_results writes vision_metrics.json with
+    figures = {"a": np.bool_(True), "b": {"c": np.float32(1.5)}, "d": [np.int64(3)]}
+    write_figures(tmp_path / "m.json", figures)
+    assert json.loads((tmp_path / "m.json").read_text()) == {"a": True, "b": {"c": 1.5}, "d": [3]}
     with pytest.raises(TypeError, match="object"):  # a value that is no number is still refused
-        json.dumps({"x": object()}, default=_plain)
+        write_figures(tmp_path / "x.json", {"x": object()})
