@@ -17,11 +17,12 @@ Every edge answer for frame ``s`` stands as the truth (its detections scored at 
 * the local detector's answers (``k`` from 0, a frame detected locally whose copy went to the
   edge, to ``span``): ``A_local(k)``.
 
-Each is an AP50 over the recent pairs, COCO's way (``precision_recall_ap``: score-ranked, so the two
-models' score scales need not match). A local answer ``k`` frames old agrees with the edge as much
-as an edge answer ``j`` frames old does, where the edge's curve crosses ``A_local(k)``; ``j - k``,
-averaged over the ``k`` with enough pairs, is how many frames later the edge may finish and still
-be the better choice: the bias. It measures agreement, not accuracy: the edge agrees with itself
+Each is an AP50 over the recent pairs, COCO's way (score-ranked, so the two models' score scales
+need not match; ``binned_ap``: the pooled AP of ``precision_recall_ap`` over counts by score
+bin). A local answer ``k`` frames old agrees with the edge as much as an edge answer ``j`` frames
+old does, where the edge's curve crosses ``A_local(k)``; ``j - k``, averaged over the ``k`` with
+enough pairs, is how many frames later the edge may finish and still be the better choice: the
+bias. It measures agreement, not accuracy: the edge agrees with itself
 better than with the truth (``benchmarks/bench_agreement.py`` prints the estimate on each half of
 the COCO clips beside what the ground truth says).
 
@@ -174,6 +175,8 @@ class Bank:
 
 @dataclass
 class Answer:
+    """One answer kept while a later (or earlier) one may still pair with it."""
+
     seq: int
     side: str
     boxes: np.ndarray

@@ -314,9 +314,10 @@ class Dispatcher(Strategy):
         return bias
 
     def bias_summary(self) -> dict[str, object]:
-        """The bias for the run's summary: as set, as learnt (periods, NaN: never known), the last
-        one used (s), and the agreement curves behind the last estimate (AP50 against the edge's
-        answers, by frames of age; None: not known)."""
+        """The bias for the run's summary: as set, as learnt (periods), the last one used (s),
+        whether a local age agreed less than the oldest edge age measured, the edge answers
+        compared, and the agreement curves behind the last estimate (AP50 against the edge's
+        answers, by frames of age); None where a figure is not known."""
         def known(x: float) -> float | None:
             return round(x, 4) if math.isfinite(x) else None
 
