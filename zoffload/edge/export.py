@@ -11,13 +11,13 @@ trajectory (the part files are then removed).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from zoffload.mapping.export import write_point_cloud
+from zoffload.runtime.results import write_figures
 
 
 def registered_backfill(summary: object) -> set[int] | None:
@@ -78,7 +78,7 @@ class RobotFiles:
         backfilled = getattr(mapper, "backfilled_seqs", None)
         if backfilled is not None:  # which outage scans its backfills registered (the newest 100,000)
             summary["backfilled_seqs"] = [int(s) for s in backfilled]
-        self.path("edge", "json").write_text(json.dumps(summary, indent=2))
+        write_figures(self.path("edge", "json"), summary)
         cloud = mapper.map_cloud()
         if len(cloud) == 0:  # nothing registered (every scan refused): no map file to write
             return None

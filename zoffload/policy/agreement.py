@@ -90,13 +90,15 @@ def precision_recall_ap(scores: Sequence[np.ndarray], tps: Sequence[np.ndarray],
     s = np.concatenate(scores)
     tp = np.concatenate(tps)[np.argsort(-s, kind="stable")]
     ctp = np.cumsum(tp)
-    recall = ctp / n_gt
-    precision = ctp / np.arange(1, len(tp) + 1)
+    return _interpolated(ctp / n_gt, ctp / np.arange(1, len(tp) + 1))
+
+
+def _interpolated(recall: np.ndarray, precision: np.ndarray) -> float:
+    """COCO's 101-point AP of a precision-recall curve (surest detections first): the precision
+    envelope read at recall 0, 0.01, ... 1 (0 beyond the curve's last recall)."""
     precision = np.maximum.accumulate(precision[::-1])[::-1]  # the precision envelope
-    points = np.linspace(0, 1, 101)
-    idx = np.searchsorted(recall, points, side="left")
-    sampled = np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0)
-    return float(sampled.mean())
+    idx = np.searchsorted(recall, np.linspace(0, 1, 101), side="left")
+    return float(np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0).mean())
 
 
 def crossing(lags: np.ndarray, curve: np.ndarray, a: float) -> float:
@@ -126,10 +128,7 @@ def binned_ap(hits: np.ndarray, misses: np.ndarray, n_gt: int) -> float:
     seen = tp + fp > 0
     if not seen.any():
         return 0.0
-    recall, precision = tp[seen] / n_gt, tp[seen] / (tp[seen] + fp[seen])
-    precision = np.maximum.accumulate(precision[::-1])[::-1]  # the precision envelope
-    idx = np.searchsorted(recall, np.linspace(0, 1, 101), side="left")
-    return float(np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0).mean())
+    return _interpolated(tp[seen] / n_gt, tp[seen] / (tp[seen] + fp[seen]))
 
 
 class Bank:

@@ -27,7 +27,6 @@ robot/frames.py's ``FrameBook``; every call into it holds ``self._lock``.
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import threading
@@ -55,6 +54,7 @@ from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.monitor import RaplMonitor, ResourceMonitor
+from zoffload.runtime.results import write_figures
 from zoffload.runtime.session import has_subscribers, undeclare
 from zoffload.sources.images import open_image_source
 
@@ -480,19 +480,6 @@ def frame_message(image: np.ndarray, robot: str, seq: int, now: float, edge: str
                                   width=w, height=h, data=data, edge=edge,
                                   camera_width=cam_w if shrunk else 0, camera_height=cam_h if shrunk else 0,
                                   reads=reads))
-
-
-def _plain(value: Any) -> Any:
-    """``json.dumps``'s fallback for numpy scalars (``np.bool_``, ``np.float32``...): their value."""
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
-
-
-def write_figures(path: Path, figures: dict[str, Any]) -> None:
-    """The run's figures as JSON: a numpy number that slipped into them is written as the number
-    (a numpy bool once lost a whole run's file at shutdown)."""
-    path.write_text(json.dumps(figures, indent=2, default=_plain))
 
 
 def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str | None = None,

@@ -22,7 +22,6 @@ go to any edge present and are dropped as ``edge_absent`` when there is none.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -62,6 +61,7 @@ from zoffload.robot.sizer import ScanSizer, Sized, finish, scan_message
 from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
+from zoffload.runtime.results import write_figures
 from zoffload.runtime.session import undeclare
 from zoffload.sources import ScanSource, open_scan_source
 
@@ -640,7 +640,7 @@ class ScanStreamer:
 
     def write_results(self, out_dir: Path) -> None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "robot_metrics.json").write_text(json.dumps(self.metrics(), indent=2))
+        write_figures(out_dir / "robot_metrics.json", self.metrics())
         with self._lock:
             self.ledger.log.write(out_dir)
 

@@ -3,21 +3,18 @@ edge (a session that answers frames): no model files needed."""
 
 from __future__ import annotations
 
-import json
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 import zenoh
 
 from tests.helpers import KEYS, client, listen_on, wait_for
 from zoffload.detect.detector import Detections
 from zoffload.policy.offload import make_strategy
 from zoffload.protocol import wire
-from zoffload.robot.camera import CameraOffloader, CameraOptions, write_figures
+from zoffload.robot.camera import CameraOffloader, CameraOptions
 from zoffload.robot.frames import FallbackRules
 from zoffload.robot.server import RobotServer
 from zoffload.runtime.config import RobotSettings
@@ -216,12 +213,3 @@ def test_previews_go_out_a_few_times_a_second_only_while_someone_watches(free_po
         img = cv2.imdecode(m.jpeg, cv2.IMREAD_COLOR)
         assert img is not None and img.shape[:2] == (m.height, m.width) == (48, 64)
     assert {m.side for _, m in viewer.got} == {"local", "edge"}
-
-
-def test_numpy_numbers_in_the_figures_are_written_as_numbers(tmp_path: Path) -> None:
-    # what write_results writes vision_metrics.json with
-    figures = {"a": np.bool_(True), "b": {"c": np.float32(1.5)}, "d": [np.int64(3)]}
-    write_figures(tmp_path / "m.json", figures)
-    assert json.loads((tmp_path / "m.json").read_text()) == {"a": True, "b": {"c": 1.5}, "d": [3]}
-    with pytest.raises(TypeError, match="object"):  # a value that is no number is still refused
-        write_figures(tmp_path / "x.json", {"x": object()})
