@@ -47,7 +47,7 @@ def _run_experiment(a: argparse.Namespace) -> int:
             trace=a.trace, policy=a.policy, scans=a.scans, out=a.out, max_scans=a.max_scans,
             replay=a.replay, rate_hz=a.rate, seed=a.seed, coding=a.coding,
             voxel_range=tuple(a.voxel_range) if a.voxel_range else None, repeat=a.repeat,
-            attach=a.attach))
+            attach=a.attach, edge_apart=a.edge_apart))
     except TraceError as exc:
         raise ConfigError(str(exc)) from exc
     print(summary_line(row))
@@ -237,6 +237,9 @@ def add_experiment(sub: Any) -> None:
                     help="the robot's fleet defaults: the attach protocol, local odometry while the link "
                          "is out, its poses handed to the edge on return (default: the paper's set-up, "
                          "every scan offered to the one edge)")
+    es.add_argument("--edge-apart", action="store_true",
+                    help="the edge on a core of its own, robot and link emulator on the others "
+                         "(taskset), as on separate computers (default: all on every core)")
     es.add_argument("--log-level", default="WARNING")
     es.set_defaults(func=_run_experiment)
     ed = exs.add_parser("detect", help="camera frames robot/edge, the offloading thesis' Tables 6.3-6.5")

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from dataclasses import asdict, dataclass, replace
 from itertools import islice
 from pathlib import Path
@@ -29,8 +30,9 @@ import numpy as np
 
 from zoffload.edge.export import registered_backfill
 from zoffload.lab.eval.trajectory import trajectory_error
+from zoffload.lab.link.ceiling import slot_ceiling
 from zoffload.lab.link.trace import Trace, load_trace
-from zoffload.lab.runner import link_clock_start, run_offload
+from zoffload.lab.runner import edge_apart_cores, link_clock_start, run_offload
 from zoffload.robot.scanlog import RECORD_FIELDS, read_scan_rows
 from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
@@ -55,6 +57,11 @@ class ScanExperiment:
     # with its own light odometry and hands the poses to the edge when it attaches again. Off by
     # default: the paper's set-up, every scan offered to the one edge.
     attach: bool = False
+    # The edge on a core of its own, the robot and the link emulator on the others (taskset), as
+    # on separate computers (lab/runner.py ``edge_apart_cores``). Off by default: the tables were
+    # measured with every process on every core, where the edge's KISS-ICP (which holds Python's
+    # GIL and runs its threads on both cores) delays the emulator and the robot.
+    edge_apart: bool = False
 
 
 def policy_voxel(policy: str) -> float | None:
@@ -166,7 +173,8 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int 
     produced = (balance or {}).get("produced", len(recs))
     return {
         "policy": (exp.policy if exp.coding == "f32" else f"{exp.policy}+{exp.coding}")
-        + ("+attach" if exp.attach and exp.policy != "local" else ""),
+        + ("+attach" if exp.attach and exp.policy != "local" else "")
+        + ("+apart" if exp.edge_apart and exp.policy != "local" else ""),
         "trace": exp.trace, "scans": exp.scans,
         "S_kB": float(np.mean([float(r["bytes"]) for r in sent]) / 1e3) if sent and exp.policy != "local"
         else None,
@@ -289,8 +297,12 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     )
     if exp.voxel_range:
         robot.voxel_range = exp.voxel_range
+    cpus = edge_apart_cores() if exp.edge_apart else {}
+    if exp.edge_apart and (not cpus or shutil.which("taskset") is None):
+        raise ConfigError("the edge on a core of its own (--edge-apart) needs two cores to split and "
+                          "taskset (util-linux)")
     run = run_offload(out, edge, robot, exp.trace, ["--seed", str(link_seed)], max_scans,
-                      max_scans / rate + 120, keep_interrupted=True)
+                      max_scans / rate + 120, keep_interrupted=True, cpus=cpus)
     reply = run.reply
     wall_start = link_clock_start(out / "link.log")
     recs = read_scan_rows(out / "robot_scans.csv")
@@ -316,6 +328,14 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
                      metrics.get("cpu"), registered)
     row["cut_short"] = run.cut_short
     row["link_seed"] = link_seed
+    if row.get("S_kB"):  # the link emulator's on-time shares for the same seed (lab/link/ceiling.py):
+        # 1-byte scans every period, which no stream of a scan a period beats (only longer slots
+        # do); and a steady stream of the run's mean size, which its sizing may beat or not
+        def share(size: float) -> float:
+            return slot_ceiling(trace, period=1 / rate, size=max(1, round(size)), seed=link_seed,
+                                duration=max_scans / rate).on_time_share
+        row["on_time_limit"] = share(1)
+        row["on_time_steady_size"] = share(1e3 * row["S_kB"])
     row.update(backfilled)
     if "backfill_unknown" in backfilled:  # which backfilled scans the edge registered: unknown
         row["delivered_skipped_or_backfilled"] = None
@@ -356,6 +376,8 @@ def summary_line(row: dict[str, Any]) -> str:
             f"robot CPU {f(row.get('robot_cpu_ms'), '.2f')} ms/scan"
             + (f", skipped {row['scans_skipped']}, on time for slot "
                f"{f(100 * row['on_time_slot'] if row.get('on_time_slot') is not None else None, '.0f')} %"
-               if "scans_skipped" in row else ""))
+               if "scans_skipped" in row else "")
+            + (f" (at most {100 * row['on_time_limit']:.0f} % a scan a period on this link)"
+               if row.get("on_time_limit") is not None else ""))
 
 

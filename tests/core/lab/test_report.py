@@ -69,6 +69,10 @@ def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) ->
     assert "2.00 ± 1.41" in line and "10 ± 0 %" in line and "90 ± 0 %" in line and "-50 %" in line
     assert "| 80 ± 0 % |" in line  # T <= 0.11 s
     assert "runs)" not in line.replace("rate (2 runs)", "")
+    # the link emulator's on-time limit at the runs' size, beside their on-time share
+    assert "(limit" not in line
+    runs[0]["on_time_limit"], runs[1]["on_time_limit"] = 0.8, 0.7
+    assert "| 90 ± 0 % (limit 75 ± 7 %) |" in table_markdown(aggregate(runs)).splitlines()[2]
     # a figure only some runs know (an edge summary unreadable): their mean, and how many they are
     runs[0]["delivered_skipped_or_backfilled"] = 0.97
     runs[1]["delivered_skipped_or_backfilled"] = None
@@ -209,3 +213,23 @@ def test_a_late_refusal_is_booked_late_and_not_counted_as_received() -> None:
     exp = ScanExperiment(trace="ethernet", policy="fixed:0.1")
     row = _table_row(exp, recs, None, None, "", led.balance())
     assert row["scans_received"] == 1 and row["scans_sent"] == 3
+
+
+def test_a_run_with_the_edge_apart_is_its_own_row_and_needs_two_cores(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--edge-apart`` (taskset: the edge on a core of its own) names its rows apart from the
+    co-located ones, and a host with no two cores to split says so before anything starts."""
+    from zoffload.lab import scan_experiment
+    from zoffload.lab.scan_experiment import ScanExperiment, _table_row
+
+    apart = ScanExperiment(trace="ethernet", policy="rate", coding="q16d", attach=True, edge_apart=True)
+    assert _table_row(apart, [], None, None, "", None)["policy"] == "rate+q16d+attach+apart"
+    assert _table_row(ScanExperiment(trace="ethernet", policy="local", edge_apart=True), [], None, None, "",
+                      None)["policy"] == "local"
+    monkeypatch.setattr(scan_experiment, "edge_apart_cores", lambda: {})
+    started: list[object] = []
+    monkeypatch.setattr(scan_experiment, "run_offload", lambda *a, **k: started.append(a))
+    with pytest.raises(ConfigError, match="core of its own"):
+        scan_experiment.run_scan_experiment(
+            ScanExperiment(trace="ethernet", policy="fixed:0.1", edge_apart=True, out=str(tmp_path / "a")))
+    assert started == []

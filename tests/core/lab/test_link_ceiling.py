@@ -1,0 +1,72 @@
+"""The on-time ceiling of a trace (lab/link/ceiling.py), run on the emulator's own scheduling."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from zoffload.lab.link.ceiling import main, slot_ceiling
+from zoffload.lab.link.trace import constant, load_trace, parse_trace
+
+
+def test_a_steady_link_puts_every_scan_on_time() -> None:
+    c = slot_ceiling(constant(100.0, delay_ms=30.0), size=20_000, duration=10.0)
+    assert (c.sent, c.received, c.skipped) == (100, 100, 0)
+    assert c.on_time_share == 1.0
+    assert abs(c.late_ms_p95) < 1.0
+
+
+def test_jitter_makes_small_scans_late_and_a_longer_slot_absorbs_it() -> None:
+    jittery = constant(100.0, delay_ms=50.0, jitter_ms=15.0)
+    one = slot_ceiling(jittery, size=1, duration=60.0, seed=3)
+    two = slot_ceiling(jittery, size=1, every=2, duration=60.0, seed=3)
+    # a 10 ms slack against the difference of two clipped 15 ms Gaussians: many late, not most
+    assert 0.55 < one.on_time_share < 0.95
+    assert two.on_time_share > one.on_time_share + 0.03
+    assert one.late_ms_p95 > 10.0
+    # bigger scans have more pieces, each with its own delay: never more on time
+    big = [slot_ceiling(jittery, size=60_000, duration=60.0, seed=s).on_time_share for s in range(3)]
+    small = [slot_ceiling(jittery, size=1, duration=60.0, seed=s).on_time_share for s in range(3)]
+    assert sum(big) < sum(small)
+
+
+def test_scans_in_an_outage_are_skipped_and_the_next_slot_covers_them() -> None:
+    trace = parse_trace("time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n"
+                        "0, 50, 50, 20, 0, 0\n2, 0, 0, 0, 0, 1\n3, 50, 50, 20, 0, 0\n", name="gap")
+    c = slot_ceiling(trace, size=1_000, duration=5.0)
+    assert c.skipped == 10 and c.received == 40
+    assert c.on_time == c.received - 1  # the scan after the gap was meant to take 11 periods
+
+
+def test_bad_arguments_are_refused() -> None:
+    with pytest.raises(ValueError):
+        slot_ceiling(constant(10.0), size=0)
+    with pytest.raises(ValueError):
+        slot_ceiling(constant(10.0), every=0)
+
+
+def test_the_command_prints_a_row_per_size_and_pace(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--trace", "capped", "--sizes", "1", "40000", "--every", "1", "--seeds", "2"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| capped")]
+    assert len(rows) == 2 and all("%" in r for r in rows)
+    assert main(["--trace", "no-such-trace"]) == 2
+
+
+def test_runs_are_set_against_the_limit_at_their_own_size(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run1"
+    run.mkdir()
+    (run / "experiment.json").write_text(json.dumps({"max_scans": 300, "rate_hz": None, "seed": 0}))
+    (run / "results.json").write_text(json.dumps({"trace": "/gone/tree/cellular-heldout.csv", "S_kB": 50.0,
+                                                  "link_seed": 1, "on_time_slot": 0.7}))
+    bad = tmp_path / "run2"
+    bad.mkdir()
+    assert main(["--runs", str(run), str(bad)]) == 2  # the unreadable one is named, the other printed
+    out = capsys.readouterr()
+    line = next(x for x in out.out.splitlines() if x.startswith(f"| {run} "))
+    limit, steady = (slot_ceiling(load_trace("cellular-heldout"), size=b, seed=1, duration=30.0).on_time_share
+                     for b in (1, 50_000))
+    assert f"| cellular-heldout | 50 | 1 | 70.0 % | {100 * limit:.1f} % | {100 * steady:.1f} % |" in line
+    assert str(bad) in out.err
