@@ -68,5 +68,35 @@ def test_runs_are_set_against_the_limit_at_their_own_size(tmp_path: Path,
     line = next(x for x in out.out.splitlines() if x.startswith(f"| {run} "))
     limit, steady = (slot_ceiling(load_trace("cellular-heldout"), size=b, seed=1, duration=30.0).on_time_share
                      for b in (1, 50_000))
-    assert f"| cellular-heldout | 50 | 1 | 70.0 % | {100 * limit:.1f} % | {100 * steady:.1f} % |" in line
+    assert f"| cellular-heldout | 50 | 1 | 70.0 % | {100 * limit:.1f} % | {100 * steady:.1f} % | – |" in line
     assert str(bad) in out.err
+
+
+def test_a_runs_own_scans_are_replayed_alone_on_its_link(tmp_path: Path) -> None:
+    """The run's sizes, send times and announced skips through the emulator's model: a scan too
+    big for its slot is late, the one queued behind it is not, a slot after a skip is longer."""
+    import csv
+
+    from zoffload.lab.link.ceiling import own_scans_share
+
+    trace = tmp_path / "steady.csv"
+    trace.write_text("time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n0, 10, 10, 10, 0, 0\n")
+    run = tmp_path / "run1"
+    run.mkdir()
+    (run / "results.json").write_text(json.dumps({"trace": str(trace), "S_kB": 1.0, "link_seed": 0}))
+    (run / "experiment.json").write_text(json.dumps({"max_scans": 30, "rate_hz": None}))
+    (run / "link.log").write_text("listening\nclock wall_start=1000.000000\n")
+    rows = []
+    for seq in range(20):
+        if seq == 12:
+            continue  # skipped on purpose: the next scan says so and gets two periods
+        rows.append({"seq": seq, "capture_stamp": 1000.5 + 0.1 * seq, "send_stamp": 50.0 + 0.1 * seq,
+                     "bytes": 200_000 if seq == 5 else 1_000, "skipped": 1 if seq == 13 else 0})
+    with open(run / "scans.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    # 19 scans sent, 18 interarrivals: only the 200 kB scan (160 ms at 10 Mbps) is late
+    assert own_scans_share(run, 0) == pytest.approx(17 / 18)
+    (run / "link.log").write_text("listening\n")  # no clock: unknown
+    assert own_scans_share(run, 0) is None

@@ -233,3 +233,27 @@ def test_a_run_with_the_edge_apart_is_its_own_row_and_needs_two_cores(
         scan_experiment.run_scan_experiment(
             ScanExperiment(trace="ethernet", policy="fixed:0.1", edge_apart=True, out=str(tmp_path / "a")))
     assert started == []
+
+
+def test_a_run_from_before_the_limit_gets_it_from_its_trace_and_seed(tmp_path: Path) -> None:
+    import json
+
+    from zoffload.lab.eval.report import load_run
+    from zoffload.lab.link.ceiling import slot_ceiling
+    from zoffload.lab.link.trace import load_trace
+
+    def run(name: str, trace: str) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "results.json").write_text(json.dumps(
+            {"trace": trace, "S_kB": 40.0, "link_seed": 2, "on_time_slot": 0.7, "scans_produced": 100}))
+        (folder / "experiment.json").write_text(json.dumps({"max_scans": 200, "rate_hz": None, "seed": 0}))
+        (folder / "scans.csv").write_text("seq,status\n")
+        return folder
+
+    old = load_run(run("old", "/a/tree/that/is/gone/cellular-heldout.csv"))
+    want = slot_ceiling(load_trace("cellular-heldout"), size=1, seed=2, duration=20.0).on_time_share
+    assert old["on_time_limit"] == pytest.approx(want) and 0 < old["on_time_steady_size"] <= 1
+    assert "(limit" in table_markdown([dict(row("rate", 100_000), **old)]).splitlines()[2]
+    lost = load_run(run("lost", "/nowhere/no-such-trace.csv"))  # unknown: left out, no error
+    assert "on_time_limit" not in lost

@@ -39,6 +39,15 @@ def load_run(folder: Path) -> dict[str, Any]:
         res["scans_kept_local"] = local
         res["delivered_skipped_or_local"] = (res["delivered_or_skipped"]
                                              + local / max(1, int(res.get("scans_produced") or 0)))
+    if "on_time_limit" not in res and res.get("on_time_slot") is not None and res.get("S_kB"):
+        # a run from before the figure: the link's limit from its trace and seed (lab/link/ceiling.py)
+        from zoffload.lab.link.ceiling import run_limits
+        from zoffload.lab.link.trace import TraceError
+
+        try:
+            res["on_time_limit"], res["on_time_steady_size"] = run_limits(folder)
+        except (OSError, ValueError, KeyError, TypeError, TraceError):
+            pass  # unknown (its trace is gone): the report leaves the limit out
     link = folder / "link.csv"
     if link.exists():
         with open(link) as f:

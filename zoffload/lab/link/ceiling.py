@@ -29,6 +29,7 @@ before them lack both.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import random
@@ -137,31 +138,84 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def run_limits(folder: Path) -> tuple[float, float]:
+    """(on_time_limit, on_time_steady_size) of a scan experiment run (``results.json`` and
+    ``experiment.json``): the 1-byte stream and a steady stream of its mean scan size, on its link
+    seed. ``OSError``/``ValueError``/``KeyError``/``TypeError`` when the run does not say enough,
+    ``TraceError`` when its trace is not found (a path that is gone is looked up by its name)."""
+    row = json.loads((folder / "results.json").read_text())
+    exp = json.loads((folder / "experiment.json").read_text())
+    spec = str(row["trace"])
+    trace = load_trace(spec if Path(spec).is_file() else Path(spec).name.removesuffix(".csv"))
+    size, seed = float(row["S_kB"]), int(row.get("link_seed", exp.get("seed", 0)))
+    period = 1.0 / float(exp.get("rate_hz") or 10.0)
+    limit, steady = (slot_ceiling(trace, period=period, size=max(1, round(b)), seed=seed,
+                                  duration=int(exp["max_scans"]) * period).on_time_share
+                     for b in (1, 1e3 * size))
+    return limit, steady
+
+
+def own_scans_share(folder: Path, seed: int) -> float | None:
+    """The on-time share of a run's own scans (their sizes, their send times, the deliberate skips
+    their messages announced: ``scans.csv``) alone on its emulated link, or None without the
+    link's clock. What the policy's choices allow on this link; the run's own share is lower by
+    what the transport and the host add."""
+    from zoffload.lab.runner import link_clock_start
+
+    row = json.loads((folder / "results.json").read_text())
+    spec = str(row["trace"])
+    trace = load_trace(spec if Path(spec).is_file() else Path(spec).name.removesuffix(".csv"))
+    wall_start = link_clock_start(folder / "link.log")
+    with open(folder / "scans.csv", newline="") as f:
+        sent = [r for r in csv.DictReader(f) if r.get("bytes") not in (None, "", "nan")
+                and r.get("send_stamp") not in (None, "", "nan")]
+    if wall_start is None or not sent:
+        return None
+    sent.sort(key=lambda r: float(r["send_stamp"]))
+    # trace time: the first scan's capture on the link's clock, then the robot's own send times
+    t0 = float(sent[0]["capture_stamp"]) - wall_start - float(sent[0]["send_stamp"])
+    up = Direction("up", trace, 0.0, LinkStats(), random.Random(seed), QUANTUM, math.inf)
+    last: float | None = None
+    on_time = late = 0
+    exp = json.loads((folder / "experiment.json").read_text())
+    period = 1.0 / float(exp.get("rate_hz") or 10.0)
+    for r in sent:
+        size = max(1, int(float(r["bytes"])))
+        pieces = [QUANTUM] * (size // QUANTUM) + ([size % QUANTUM] if size % QUANTUM else [])
+        arrival = max(up._schedule(bytes(n), t0 + float(r["send_stamp"])) for n in pieces)
+        if last is not None and math.isfinite(arrival):
+            slot = period * (1 + int(float(r.get("skipped") or 0)))
+            if arrival - last <= SLOT_SLACK * slot:
+                on_time += 1
+            else:
+                late += 1
+        last = arrival
+    return on_time / max(1, on_time + late)
+
+
 def _runs(folders: Sequence[Path]) -> int:
     """Each run's on time for slot beside the limit at its mean size (``results.json``)."""
     print("| run | trace | S (kB/scan) | link seed | on time for slot | 1-byte scans (the limit) "
-          "| a steady stream of its size |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+          "| a steady stream of its size | its own scans alone on the link |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     status = 0
     for folder in folders:
         try:
+            limit, steady = run_limits(folder)
             row = json.loads((folder / "results.json").read_text())
-            exp = json.loads((folder / "experiment.json").read_text())
-            spec = str(row["trace"])  # a path that is gone (a run made from another tree): its name
-            trace = load_trace(spec if Path(spec).is_file() else Path(spec).name.removesuffix(".csv"))
-            size, seed = float(row["S_kB"]), int(row.get("link_seed", exp.get("seed", 0)))
-            period = 1.0 / float(exp.get("rate_hz") or 10.0)
-            limit, steady = (slot_ceiling(trace, period=period, size=max(1, round(b)), seed=seed,
-                                          duration=int(exp["max_scans"]) * period).on_time_share
-                             for b in (1, 1e3 * size))
         except (OSError, ValueError, KeyError, TypeError, TraceError) as exc:
             print(f"error: {folder}: {exc}", file=sys.stderr)
             status = 2
             continue
+        try:
+            own = own_scans_share(folder, int(row.get("link_seed", 0)))
+        except (OSError, ValueError, KeyError, TypeError):
+            own = None  # no scans.csv or link clock to replay: unknown
         on_time = row.get("on_time_slot")
-        print(f"| {folder} | {Path(trace.name).name.removesuffix('.csv')} | {size:.0f} | {seed} "
+        print(f"| {folder} | {Path(str(row['trace'])).name.removesuffix('.csv')} | {float(row['S_kB']):.0f} "
+              f"| {row.get('link_seed', '–')} "
               f"| {'–' if on_time is None else f'{100 * on_time:.1f} %'} | {100 * limit:.1f} % "
-              f"| {100 * steady:.1f} % |")
+              f"| {100 * steady:.1f} % | {'–' if own is None else f'{100 * own:.1f} %'} |")
     return status
 
 
