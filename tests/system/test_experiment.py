@@ -52,10 +52,9 @@ def test_raw_degrades_on_a_bad_link_while_local_and_downsampled_do_not(tmp_path:
     assert 0 < small["robot_cpu_ms"] < local["robot_cpu_ms"] and small["robot_process_cpu_ms"] > 0
     assert small["scans_skipped"] == 0 and small["delivered_or_skipped"] >= 0.9
     assert small["on_time_slot"] > 0.5
-    # the emulator's on-time shares of 1-byte scans and of a steady stream of the run's size
-    assert 0.5 < small["on_time_steady_size"] <= small["on_time_limit"] + 0.02
-    assert small["on_time_limit"] <= 1.0
-    assert "on_time_limit" not in local
+    # the emulator's model alone: 1-byte scans, and a steady stream of the run's size
+    assert 0.5 < small["on_time_tiny"] <= 1.0 and 0.5 < small["on_time_steady_size"] <= 1.0
+    assert "on_time_tiny" not in local
     # The emulator really shaped the bad phase, and every scan record says what the link was
     with open(tmp_path / "raw" / "link.csv") as f:
         link = list(csv.DictReader(f))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.lab.link.ceiling import main, slot_ceiling
+from zoffload.lab.link.ceiling import RUN_SEEDS, main, run_streams, slot_ceiling, stream_shares
 from zoffload.lab.link.trace import constant, load_trace, parse_trace
 
 
@@ -54,22 +54,30 @@ def test_the_command_prints_a_row_per_size_and_pace(capsys: pytest.CaptureFixtur
     assert main(["--trace", "no-such-trace"]) == 2
 
 
-def test_runs_are_set_against_the_limit_at_their_own_size(tmp_path: Path,
-                                                           capsys: pytest.CaptureFixture[str]) -> None:
+def test_runs_are_set_against_streams_over_their_stretch_of_the_trace(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     run = tmp_path / "run1"
     run.mkdir()
-    (run / "experiment.json").write_text(json.dumps({"max_scans": 300, "rate_hz": None, "seed": 0}))
+    (run / "experiment.json").write_text(json.dumps({"max_scans": 300, "rate": 10.0, "seed": 0}))
     (run / "results.json").write_text(json.dumps({"trace": "/gone/tree/cellular-heldout.csv", "S_kB": 50.0,
-                                                  "link_seed": 1, "on_time_slot": 0.7}))
+                                                  "on_time_slot": 0.7}))
     bad = tmp_path / "run2"
     bad.mkdir()
     assert main(["--runs", str(run), str(bad)]) == 2  # the unreadable one is named, the other printed
     out = capsys.readouterr()
     line = next(x for x in out.out.splitlines() if x.startswith(f"| {run} "))
-    limit, steady = (slot_ceiling(load_trace("cellular-heldout"), size=b, seed=1, duration=30.0).on_time_share
-                     for b in (1, 50_000))
-    assert f"| cellular-heldout | 50 | 1 | 70.0 % | {100 * limit:.1f} % | {100 * steady:.1f} % | – |" in line
+    trace = load_trace("cellular-heldout")
+    tiny, steady = stream_shares(trace, period=0.1, size=50_000, start=0.0, duration=30.0)
+    assert f"| cellular-heldout | 50 | 70.0 % | {100 * tiny:.1f} % | {100 * steady:.1f} % | – |" in line
     assert str(bad) in out.err
+    # the mean over seeds: a run's own seed drew other messages' jitter too, not only its scans'
+    assert tiny == pytest.approx(sum(slot_ceiling(trace, size=1, seed=s, duration=30.0).on_time_share
+                                     for s in range(RUN_SEEDS)) / RUN_SEEDS)
+    # the run's stretch of the trace: from its first scan on the link's clock
+    (run / "link.log").write_text("clock wall_start=100.0\n")
+    (run / "scans.csv").write_text("seq,capture_stamp\n0,125.0\n1,125.1\n")
+    later = run_streams(run)
+    assert later == stream_shares(trace, period=0.1, size=50_000, start=25.0, duration=30.0) != (tiny, steady)
 
 
 def test_a_runs_own_scans_are_replayed_alone_on_its_link(tmp_path: Path) -> None:
@@ -83,8 +91,8 @@ def test_a_runs_own_scans_are_replayed_alone_on_its_link(tmp_path: Path) -> None
     trace.write_text("time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage\n0, 10, 10, 10, 0, 0\n")
     run = tmp_path / "run1"
     run.mkdir()
-    (run / "results.json").write_text(json.dumps({"trace": str(trace), "S_kB": 1.0, "link_seed": 0}))
-    (run / "experiment.json").write_text(json.dumps({"max_scans": 30, "rate_hz": None}))
+    (run / "results.json").write_text(json.dumps({"trace": str(trace), "S_kB": 1.0}))
+    (run / "experiment.json").write_text(json.dumps({"max_scans": 30, "rate": 10.0}))
     (run / "link.log").write_text("listening\nclock wall_start=1000.000000\n")
     rows = []
     for seq in range(20):
@@ -97,6 +105,6 @@ def test_a_runs_own_scans_are_replayed_alone_on_its_link(tmp_path: Path) -> None
         w.writeheader()
         w.writerows(rows)
     # 19 scans sent, 18 interarrivals: only the 200 kB scan (160 ms at 10 Mbps) is late
-    assert own_scans_share(run, 0) == pytest.approx(17 / 18)
+    assert own_scans_share(run) == pytest.approx(17 / 18)
     (run / "link.log").write_text("listening\n")  # no clock: unknown
-    assert own_scans_share(run, 0) is None
+    assert own_scans_share(run) is None

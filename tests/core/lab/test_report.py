@@ -69,10 +69,10 @@ def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) ->
     assert "2.00 ± 1.41" in line and "10 ± 0 %" in line and "90 ± 0 %" in line and "-50 %" in line
     assert "| 80 ± 0 % |" in line  # T <= 0.11 s
     assert "runs)" not in line.replace("rate (2 runs)", "")
-    # the link emulator's on-time limit at the runs' size, beside their on-time share
-    assert "(limit" not in line
-    runs[0]["on_time_limit"], runs[1]["on_time_limit"] = 0.8, 0.7
-    assert "| 90 ± 0 % (limit 75 ± 7 %) |" in table_markdown(aggregate(runs)).splitlines()[2]
+    # 1-byte scans on the runs' emulated link, beside their on-time share
+    assert "(1-byte" not in line
+    runs[0]["on_time_tiny"], runs[1]["on_time_tiny"] = 0.8, 0.7
+    assert "| 90 ± 0 % (1-byte 75 ± 7 %) |" in table_markdown(aggregate(runs)).splitlines()[2]
     # a figure only some runs know (an edge summary unreadable): their mean, and how many they are
     runs[0]["delivered_skipped_or_backfilled"] = 0.97
     runs[1]["delivered_skipped_or_backfilled"] = None
@@ -235,11 +235,11 @@ def test_a_run_with_the_edge_apart_is_its_own_row_and_needs_two_cores(
     assert started == []
 
 
-def test_a_run_from_before_the_limit_gets_it_from_its_trace_and_seed(tmp_path: Path) -> None:
+def test_a_run_from_before_the_streams_gets_them_from_its_trace(tmp_path: Path) -> None:
     import json
 
     from zoffload.lab.eval.report import load_run
-    from zoffload.lab.link.ceiling import slot_ceiling
+    from zoffload.lab.link.ceiling import stream_shares
     from zoffload.lab.link.trace import load_trace
 
     def run(name: str, trace: str) -> Path:
@@ -252,8 +252,8 @@ def test_a_run_from_before_the_limit_gets_it_from_its_trace_and_seed(tmp_path: P
         return folder
 
     old = load_run(run("old", "/a/tree/that/is/gone/cellular-heldout.csv"))
-    want = slot_ceiling(load_trace("cellular-heldout"), size=1, seed=2, duration=20.0).on_time_share
-    assert old["on_time_limit"] == pytest.approx(want) and 0 < old["on_time_steady_size"] <= 1
-    assert "(limit" in table_markdown([dict(row("rate", 100_000), **old)]).splitlines()[2]
+    want = stream_shares(load_trace("cellular-heldout"), period=0.1, size=40_000, start=0.0, duration=20.0)
+    assert (old["on_time_tiny"], old["on_time_steady_size"]) == pytest.approx(want)
+    assert "(1-byte" in table_markdown([dict(row("rate", 100_000), **old)]).splitlines()[2]
     lost = load_run(run("lost", "/nowhere/no-such-trace.csv"))  # unknown: left out, no error
-    assert "on_time_limit" not in lost
+    assert "on_time_tiny" not in lost
