@@ -59,8 +59,9 @@ class ScanExperiment:
     attach: bool = False
     # The edge on a core of its own, the robot and the link emulator on the others (taskset), as
     # on separate computers (lab/runner.py ``edge_apart_cores``). Off by default: the tables were
-    # measured with every process on every core, where the edge's KISS-ICP (which holds Python's
-    # GIL and runs its threads on both cores) delays the emulator and the robot.
+    # measured with every process on every core, and on a 2-core host the robot, its simulator and
+    # the emulator sharing one core were on time 12-15 points less often on ``wifi-locations``
+    # (docs/scan-policy-log.md, 2026-12-06).
     edge_apart: bool = False
 
 
