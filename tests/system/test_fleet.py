@@ -67,7 +67,9 @@ def _client_args(port: int) -> list[str]:
     return ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--no-shm", *LEASE]
 
 
-@pytest.mark.parametrize("routers", [1, 2], ids=["one_router", "two_routers"])
+# two linked routers with -m slow (test_security.py carries a robot and an edge through two)
+@pytest.mark.parametrize("routers", [1, pytest.param(2, marks=pytest.mark.slow)],
+                         ids=["one_router", "two_routers"])
 def test_three_robots_two_edges_one_killed(routers: int, free_port: int, tmp_path: Path) -> None:
     from zoffload.runtime.session import free_tcp_port
 

@@ -138,9 +138,11 @@ def test_added_delay_within_5_ms(tmp_path: Path) -> None:
     # Never early (that would be the emulator's fault whatever the load), the median on the
     # trace's delay, and nine in ten trips within 5 ms: a late trip can be a scheduling hiccup of
     # the 2-core machine under the suite's other processes (seen in CI: one trip of 27 over, and
-    # once two trips over in one run)
+    # once two trips over in one run). The median within 3 ms: each hop wakes an event loop or a
+    # thread, and on the Intel VM of 2026-12-06 asyncio's 30 ms sleep alone woke 0.7 ms late (its
+    # epoll timeout rounds up to the millisecond): medians 32.2 and 32.3 ms in two suite runs
     assert all(d >= 29 for d in one_way_ms), one_way_ms
-    assert abs(statistics.median(one_way_ms) - 30) <= 2, one_way_ms
+    assert abs(statistics.median(one_way_ms) - 30) <= 3, one_way_ms
     assert sum(abs(d - 30) <= 5 for d in one_way_ms) >= 0.9 * len(one_way_ms), one_way_ms
 
 

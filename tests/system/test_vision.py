@@ -87,7 +87,8 @@ def _served(session: zenoh.Session, port: int, tmp_path: Path, cfg: Path, before
     return edge, robot
 
 
-@pytest.mark.parametrize("strategy", ["edge", "dispatch"])
+# edge only with -m slow: the default strategy's fallback is the target's, and the suite's time
+@pytest.mark.parametrize("strategy", [pytest.param("edge", marks=pytest.mark.slow), "dispatch"])
 def test_robot_falls_back_within_250_ms_and_resumes(free_port: int, tmp_path: Path, coco_dir: Path,
                                                     models_dir: Path, strategy: str) -> None:
     # Ours compares the sides: with no CPU quota the robot's lighter detector (~25 ms) can look as

@@ -52,7 +52,9 @@ def test_a_late_gone_is_undone_by_the_recheck_and_a_real_gone_stays(free_port: i
         # ... and the first re-check (0.25 s later) finds the token: present again, told in order
         wait_for(lambda: watcher.edges == {"edge1"}, 3, "the re-check to find edge1's token")
         assert watcher.rechecked == 1
-        assert events[-1] == ("edge1", True, frozenset({"edge1"}))
+        # (the set changes first, the listeners are told right after, outside the state's lock)
+        wait_for(lambda: events[-1] == ("edge1", True, frozenset({"edge1"})), 3, "the listeners told")
+        assert events[-2] == ("edge1", False, frozenset())
 
         # A "gone" of an edge that never was here is no reason to ask (the set of checks is bounded)
         watcher._on_token(FakeTokenSample(KEYS.edge_alive("stranger")))  # type: ignore[arg-type]

@@ -308,7 +308,8 @@ def test_a_scan_the_window_holds_back_goes_when_an_ack_frees_a_slot(free_port: i
         # (a held scan goes ~30 ms late, and its answer with it: about every tenth waits a period
         # in vain)
         assert window <= 6 and m["window"]["released"] >= 20, (m["dropped_source"], m["window"])
-        assert m["balance"]["acked"] >= 36, m["balance"]
+        # every scan sent is answered (a slower host: 5 of 40 waited in vain, 2026-12-06)
+        assert m["balance"]["acked"] == m["balance"]["published"], m["balance"]
         released = [r for r in robot.ledger.records.values() if "in a freed slot" in str(r.get("reason"))]
         assert len(released) == m["window"]["released"]
         assert all(r["status"] == "acked" and r["bytes"] > 0 for r in released)
