@@ -25,6 +25,7 @@ from pathlib import Path
 
 from benchmarks.common import header
 from zoffload.lab.link.ceiling import RUN_SEEDS, SLOT_SLACK, slot_ceiling
+from zoffload.lab.link.probe import listening
 from zoffload.lab.link.trace import parse_trace
 from zoffload.runtime.session import free_tcp_port
 
@@ -42,10 +43,7 @@ CASES = [
 
 def receive(port: int, arrivals: list[float], ready: threading.Event) -> None:
     """Accept one connection; the arrival time of every whole message (4-byte length first)."""
-    with socket.socket() as srv:
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind(("127.0.0.1", port))
-        srv.listen()
+    with listening(port) as srv:
         ready.set()
         conn, _ = srv.accept()
         with conn:

@@ -15,12 +15,18 @@ import time
 from collections import Counter
 
 
+def listening(port: int, host: str = "127.0.0.1") -> socket.socket:
+    """A TCP socket listening on ``host:port`` (reusable address), for one connection."""
+    srv = socket.socket()
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind((host, port))
+    srv.listen()
+    return srv
+
+
 def sink(port: int, seconds: float, host: str = "127.0.0.1") -> dict[str, object]:
     per_second: Counter[int] = Counter()
-    with socket.socket() as srv:
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind((host, port))
-        srv.listen()
+    with listening(port, host) as srv:
         print("listening", flush=True)
         srv.settimeout(seconds + 10)
         conn, _ = srv.accept()
