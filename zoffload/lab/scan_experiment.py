@@ -30,7 +30,7 @@ import numpy as np
 
 from zoffload.edge.export import registered_backfill
 from zoffload.lab.eval.trajectory import trajectory_error
-from zoffload.lab.link.ceiling import stream_shares
+from zoffload.lab.link.ceiling import stream_shares, stream_start
 from zoffload.lab.link.trace import Trace, load_trace
 from zoffload.lab.runner import edge_apart_cores, link_clock_start, run_offload
 from zoffload.robot.scanlog import RECORD_FIELDS, read_scan_rows
@@ -332,10 +332,10 @@ def _run_offload(exp: ScanExperiment, trace: Trace, voxel: float, rate: float, r
     if row.get("S_kB") and wall_start is not None:
         # the link emulator's model alone over the run's stretch of the trace (lab/link/ceiling.py):
         # a scan every period of 1 byte (what its jitter leaves) and of the run's mean size
-        stamps = [float(r["capture_stamp"]) for r in recs if r.get("capture_stamp") not in (None, "")]
+        captures = (float(r["capture_stamp"]) for r in recs if r.get("capture_stamp") not in (None, ""))
+        start = stream_start(captures, wall_start)
         row["on_time_tiny"], row["on_time_steady_size"] = stream_shares(
-            trace, period=1 / rate, size=1e3 * row["S_kB"], duration=max_scans / rate,
-            start=max(0.0, min(stamps) - wall_start) if stamps else 0.0)
+            trace, period=1 / rate, size=1e3 * row["S_kB"], duration=max_scans / rate, start=start)
     row.update(backfilled)
     if "backfill_unknown" in backfilled:  # which backfilled scans the edge registered: unknown
         row["delivered_skipped_or_backfilled"] = None

@@ -42,7 +42,7 @@ import math
 import random
 import statistics
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,6 +70,19 @@ class Ceiling:
         return self.on_time / max(1, self.received - 1)
 
 
+def _arrival(up: Direction, size: int, t: float) -> float:
+    """When a scan of ``size`` bytes put on ``up`` at ``t`` is delivered: its last piece's."""
+    q = up.quantum
+    pieces = [q] * (size // q) + ([size % q] if size % q else [])
+    return max(up._schedule(bytes(n), t) for n in pieces)
+
+
+def stream_start(captures: Iterable[float], wall_start: float | None) -> float:
+    """A run's first scan on the trace's clock (the link's ``wall_start``): 0 without either."""
+    first = min(captures, default=None)
+    return 0.0 if wall_start is None or first is None else max(0.0, first - wall_start)
+
+
 def slot_ceiling(trace: Trace, *, period: float = 0.1, size: int = 1, every: int = 1, seed: int = 0,
                  duration: float | None = None, start: float = 0.0, quantum: int = QUANTUM,
                  slack: float = SLOT_SLACK) -> Ceiling:
@@ -80,7 +93,6 @@ def slot_ceiling(trace: Trace, *, period: float = 0.1, size: int = 1, every: int
         raise ValueError("period must be > 0, size, every and quantum >= 1")
     span = trace.duration + 10.0 if duration is None else duration
     up = Direction("up", trace, 0.0, LinkStats(), random.Random(seed), quantum, math.inf)
-    pieces = [quantum] * (size // quantum) + ([size % quantum] if size % quantum else [])
     slot = every * period
     sent = received = skipped = on_time = 0
     held = 0  # scans skipped since the last one sent
@@ -94,7 +106,7 @@ def slot_ceiling(trace: Trace, *, period: float = 0.1, size: int = 1, every: int
             skipped += 1
             held += 1
             continue
-        arrival = max(up._schedule(bytes(n), t) for n in pieces)
+        arrival = _arrival(up, size, t)
         received += 1
         if last is not None:
             over = (arrival - last) - (1 + held) * slot
@@ -149,8 +161,20 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _run(folder: Path) -> tuple[dict[str, Any], Trace, float, float, int]:
-    """(results.json, its trace, its period, its start on the trace's clock, its scans)."""
+@dataclass(frozen=True)
+class _Run:
+    """What a scan experiment run's folder says, read once."""
+
+    row: dict[str, Any]  # results.json
+    trace: Trace
+    period: float
+    start: float  # its first scan on the trace's clock
+    scans: int  # the sensor's scans it was run for
+    wall_start: float | None  # the link's clock (link.log); None: not known
+    records: list[dict[str, str]]  # scans.csv (empty without it)
+
+
+def _read_run(folder: Path) -> _Run:
     from zoffload.lab.runner import link_clock_start
 
     row = json.loads((folder / "results.json").read_text())
@@ -158,13 +182,13 @@ def _run(folder: Path) -> tuple[dict[str, Any], Trace, float, float, int]:
     spec = str(row["trace"])  # a path that is gone (a run made from another tree): by its name
     trace = load_trace(spec if Path(spec).is_file() else Path(spec).name.removesuffix(".csv"))
     period = 1.0 / float(exp.get("rate") or exp.get("rate_hz") or 10.0)  # "rate": written since 2026-12-06
-    start = 0.0
     wall_start = link_clock_start(folder / "link.log")
-    if wall_start is not None and (folder / "scans.csv").exists():
+    records: list[dict[str, str]] = []
+    if (folder / "scans.csv").exists():
         with open(folder / "scans.csv", newline="") as f:
-            stamps = [float(r["capture_stamp"]) for r in csv.DictReader(f) if r.get("capture_stamp")]
-        start = max(0.0, min(stamps) - wall_start) if stamps else 0.0
-    return row, trace, period, start, int(exp["max_scans"])
+            records = list(csv.DictReader(f))
+    start = stream_start((float(r["capture_stamp"]) for r in records if r.get("capture_stamp")), wall_start)
+    return _Run(row, trace, period, start, int(exp["max_scans"]), wall_start, records)
 
 
 def stream_shares(trace: Trace, *, period: float, size: float, start: float, duration: float,
@@ -177,14 +201,42 @@ def stream_shares(trace: Trace, *, period: float, size: float, start: float, dur
     return share(1), share(size)
 
 
+def _streams(run: _Run, seeds: int) -> tuple[float, float]:
+    return stream_shares(run.trace, period=run.period, size=1e3 * float(run.row["S_kB"]), start=run.start,
+                         duration=run.scans * run.period, seeds=seeds)
+
+
 def run_streams(folder: Path, seeds: int = RUN_SEEDS) -> tuple[float, float]:
     """``stream_shares`` of a scan experiment run (``results.json``, ``experiment.json``; its start
     on the trace's clock from ``link.log`` and ``scans.csv`` when they are there) at its mean scan
     size. ``OSError``/``ValueError``/``KeyError``/``TypeError`` when the run does not say enough,
     ``TraceError`` when its trace is not found."""
-    row, trace, period, start, scans = _run(folder)
-    return stream_shares(trace, period=period, size=1e3 * float(row["S_kB"]), start=start,
-                         duration=scans * period, seeds=seeds)
+    return _streams(_read_run(folder), seeds)
+
+
+def _own_share(run: _Run, seeds: int) -> float | None:
+    sent = [r for r in run.records if r.get("bytes") not in (None, "", "nan")
+            and r.get("send_stamp") not in (None, "", "nan") and r.get("capture_stamp")]
+    if run.wall_start is None or not sent:
+        return None
+    sent.sort(key=lambda r: float(r["send_stamp"]))
+    # on the trace's clock: the first scan's capture, then the robot's own send times
+    t0 = float(sent[0]["capture_stamp"]) - run.wall_start - float(sent[0]["send_stamp"])
+    shares = []
+    for seed in range(seeds):
+        up = Direction("up", run.trace, 0.0, LinkStats(), random.Random(seed), QUANTUM, math.inf)
+        last: float | None = None
+        on_time = late = 0
+        for r in sent:
+            arrival = _arrival(up, max(1, int(float(r["bytes"]))), t0 + float(r["send_stamp"]))
+            if last is not None:
+                if arrival - last <= SLOT_SLACK * run.period * (1 + int(float(r.get("skipped") or 0))):
+                    on_time += 1
+                else:
+                    late += 1
+            last = arrival
+        shares.append(on_time / max(1, on_time + late))
+    return statistics.fmean(shares)
 
 
 def own_scans_share(folder: Path, seeds: int = RUN_SEEDS) -> float | None:
@@ -192,35 +244,7 @@ def own_scans_share(folder: Path, seeds: int = RUN_SEEDS) -> float | None:
     their messages announced: ``scans.csv``) alone on its emulated link, the mean over ``seeds``
     seeds; None without the link's clock (``link.log``) or a scan sent. What the policy's choices
     allow on this link; the run's own share is lower by what the transport and the host add."""
-    from zoffload.lab.runner import link_clock_start
-
-    _, trace, period, _, _ = _run(folder)
-    wall_start = link_clock_start(folder / "link.log")
-    with open(folder / "scans.csv", newline="") as f:
-        sent = [r for r in csv.DictReader(f) if r.get("bytes") not in (None, "", "nan")
-                and r.get("send_stamp") not in (None, "", "nan") and r.get("capture_stamp")]
-    if wall_start is None or not sent:
-        return None
-    sent.sort(key=lambda r: float(r["send_stamp"]))
-    # on the trace's clock: the first scan's capture, then the robot's own send times
-    t0 = float(sent[0]["capture_stamp"]) - wall_start - float(sent[0]["send_stamp"])
-    shares = []
-    for seed in range(seeds):
-        up = Direction("up", trace, 0.0, LinkStats(), random.Random(seed), QUANTUM, math.inf)
-        last: float | None = None
-        on_time = late = 0
-        for r in sent:
-            size = max(1, int(float(r["bytes"])))
-            pieces = [QUANTUM] * (size // QUANTUM) + ([size % QUANTUM] if size % QUANTUM else [])
-            arrival = max(up._schedule(bytes(n), t0 + float(r["send_stamp"])) for n in pieces)
-            if last is not None:
-                if arrival - last <= SLOT_SLACK * period * (1 + int(float(r.get("skipped") or 0))):
-                    on_time += 1
-                else:
-                    late += 1
-            last = arrival
-        shares.append(on_time / max(1, on_time + late))
-    return statistics.fmean(shares)
+    return _own_share(_read_run(folder), seeds)
 
 
 def _runs(folders: Sequence[Path]) -> int:
@@ -232,16 +256,17 @@ def _runs(folders: Sequence[Path]) -> int:
     status = 0
     for folder in folders:
         try:
-            tiny, steady = run_streams(folder)
-            row = json.loads((folder / "results.json").read_text())
+            run = _read_run(folder)
+            tiny, steady = _streams(run, RUN_SEEDS)
         except (OSError, ValueError, KeyError, TypeError, TraceError) as exc:
             print(f"error: {folder}: {exc}", file=sys.stderr)
             status = 2
             continue
         try:
-            own = own_scans_share(folder)
-        except (OSError, ValueError, KeyError, TypeError):
-            own = None  # no scans.csv or link clock to replay: unknown
+            own = _own_share(run, RUN_SEEDS)
+        except (ValueError, KeyError, TypeError):
+            own = None  # records that do not replay: unknown
+        row = run.row
         on_time = row.get("on_time_slot")
         print(f"| {folder} | {Path(str(row['trace'])).name.removesuffix('.csv')} | {float(row['S_kB']):.0f} "
               f"| {'–' if on_time is None else f'{100 * on_time:.1f} %'} | {100 * tiny:.1f} % "
