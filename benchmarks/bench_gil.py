@@ -5,7 +5,9 @@ KISS-ICP's Python binding does not release the GIL: while ``register`` runs (the
 callbacks that stamp a scan's arrival, the other robots' scans, camera frames, the fleet's
 messages. A thread that sleeps 1 ms in a loop shows it: the gaps between its wake-ups, while a
 worker thread registers the 50 KITTI-360 HDL-64 scans (each twice) beside it, against the same
-loop beside a worker doing numpy work that releases the GIL (an SVD), and alone.
+loop beside a worker doing numpy work that releases the GIL (an SVD), alone, and beside the same
+registrations in a mapper process (``edge/isolate.py``, the edge's default since 2026-12-06:
+``mapper.processes``), where the worker thread waits on a socket with the GIL released.
 
 Run: python -m benchmarks.bench_gil
 """
@@ -20,8 +22,11 @@ from collections.abc import Callable
 import numpy as np
 
 from benchmarks.common import header, sensor_frames
+from zoffload.edge.isolate import MapperPool
+from zoffload.edge.recipe import MapperRecipe
 from zoffload.mapping.cloud import drop_non_finite
 from zoffload.mapping.mapper import RobotMapper, mapper_voxel_size
+from zoffload.protocol import wire
 
 
 def wake_gaps(work: Callable[[], None] | None, seconds: float = 3.0) -> list[float]:
@@ -65,6 +70,18 @@ def main() -> None:
             reg_ms.append((time.perf_counter() - t0) * 1e3)
 
     x = np.random.default_rng(0).random((300, 300))
+    pool = MapperPool(MapperRecipe(), 1)
+    pool.warm_up()
+    first = wire.Scan(robot="r1", seq=0, send_stamp=0.0, capture_stamp=0.0, voxel=0.0, voxel_max=0.5,
+                      max_range=max_range, n_raw=0, points=np.zeros((0, 3), np.float32))
+    remote = pool(first)
+    remote_ms: list[float] = []
+
+    def register_apart() -> None:
+        for seq, pts in enumerate(scans * 2):
+            t0 = time.perf_counter()
+            remote.register(seq, pts)
+            remote_ms.append((time.perf_counter() - t0) * 1e3)
 
     def svd() -> None:
         t0 = time.perf_counter()
@@ -73,12 +90,15 @@ def main() -> None:
 
     print(f"{'beside':34} {'wake-ups':>9} {'median ms':>10} {'p99 ms':>8} {'max ms':>8}")
     for label, work in (("nothing", None), ("numpy SVD (releases the GIL)", svd),
-                        ("RobotMapper.register (KISS-ICP)", register)):
+                        ("RobotMapper.register (KISS-ICP)", register),
+                        ("the same in a mapper process", register_apart)):
         gaps = wake_gaps(work)
         print(f"{label:34} {len(gaps):9d} {statistics.median(gaps):10.2f} "
               f"{float(np.percentile(gaps, 99)):8.1f} {max(gaps):8.1f}")
-    print(f"registration: {statistics.median(reg_ms):.1f} ms a scan (median wall time, "
-          f"{len(reg_ms)} HDL-64 scans)")
+    pool.close()
+    print(f"registration: {statistics.median(reg_ms):.1f} ms a scan in the process, "
+          f"{statistics.median(remote_ms):.1f} ms in a mapper process, request and reply included "
+          f"(median wall time, {len(reg_ms)} HDL-64 scans)")
 
 
 if __name__ == "__main__":

@@ -15,8 +15,12 @@ On eviction and stop: with a ``map_dir``, the robot's map, trajectory and counte
 The Zenoh callback only stamps, checks and queues; registration runs on a fixed pool of worker
 threads serving the robots' queues in turn, one scan per turn, so a slow mapper never blocks
 reception, inter-arrival T stays an arrival-time measure, and the thread count does not depend on
-how many robots there are. A robot is held by at most one worker at a time: its scans are
-registered in order, never concurrently. Each robot keeps at most ``queue`` waiting scans; the
+how many robots there are. The mappers themselves run in a fixed set of processes (edge/isolate.py,
+the server's default): KISS-ICP holds the GIL through its calls, and in this process a
+registration would stall the callbacks; a mapper lost with its process (``MapperLost``) is
+counted (``mapper_lost``) and its robot detached, so it attaches again with its checkpoint. A
+robot is held by at most one worker at a time: its scans are registered in order, never
+concurrently. Each robot keeps at most ``queue`` waiting scans; the
 oldest is acked ``dropped`` when a newer one comes.
 
 Fleet (edge/fleet.py holds the decisions): a robot attaches with an epoch and maybe a checkpoint;
@@ -51,7 +55,7 @@ import zenoh
 from zoffload.edge.admission import Admission
 from zoffload.edge.export import RobotFiles
 from zoffload.edge.fleet import MAP, OTHER, Fleet, Peers, check_attach, peek_route
-from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, Queued, RobotSession
+from zoffload.edge.robots import Continue, FleetMapper, MapperFactory, MapperLost, Queued, RobotSession
 from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, edge_token, robot_in_key
@@ -157,6 +161,9 @@ class MappingService:
         if self.map_dir:
             for rs in list(self.robots.values()):
                 self._export(rs)
+        close = getattr(self.make_mapper, "close", None)
+        if close is not None:  # the mapper processes (edge/isolate.py), once the maps are out
+            close()
         log.info("mapping stopped: %s, drops %s", dict(self.counters), self.drops.snapshot())
 
     def status(self) -> dict[str, float]:
@@ -173,6 +180,9 @@ class MappingService:
         values["malformed"] = float(drops.get("malformed", 0))
         values["robots"] = float(len(robots))
         values["workers"] = float(sum(w.is_alive() for w in self._workers))
+        pool_status = getattr(self.make_mapper, "status", None)
+        if pool_status is not None:
+            values.update(pool_status())
         for rs in robots:
             values[f"{rs.robot}.map_points"] = float(rs.mapper.map_points if rs.mapper else 0)
             values[f"{rs.robot}.queue"] = float(len(rs.queue))
@@ -312,6 +322,8 @@ class MappingService:
         """Something a robot sent broke a worker's step outside registration (a checkpoint of a
         map too far out for its grid, say): counted and logged; the worker lives on. Before, the
         exception ended the worker thread and the robot's later scans were never answered."""
+        if isinstance(exc, MapperLost):
+            self._lost(rs, exc)
         self._count(rs, "worker_errors")
         n = rs.counters["worker_errors"]
         if n <= 10 or n % 1000 == 0:
@@ -341,6 +353,8 @@ class MappingService:
             start = time.monotonic()
             reg = rs.mapper.register(scan.seq, points, times)
         except Exception as exc:  # a bad scan must not take the worker down
+            if isinstance(exc, MapperLost):
+                self._lost(rs, exc)
             self._count(rs, "errors")
             if rs.counters["errors"] <= 10 or rs.counters["errors"] % 1000 == 0:
                 log.warning("robot %s scan %d: registration failed (%d so far): %s", rs.robot, scan.seq,
@@ -356,6 +370,23 @@ class MappingService:
             rs.since_checkpoint += 1
             if rs.checkpoint_epoch != scan.epoch or rs.since_checkpoint >= self.checkpoint_every:
                 self._send_checkpoint(rs, scan.epoch)
+
+    def _lost(self, rs: RobotSession, exc: Exception) -> None:
+        """The robot's mapper is gone (its process died or hung, edge/isolate.py): counted. An
+        attached robot is detached, so its next scans are refused as an edge that lost its state
+        refuses them, and it attaches again with its checkpoint: its new mapper continues its
+        trajectory (its local odometry bridges meanwhile). Another robot's next scan starts a
+        new map, in the frame of that scan."""
+        self._count(rs, "mapper_lost")
+        with self._lock:
+            rs.mapper = None
+            rs.pending = None
+            rs.checkpoint_epoch, rs.since_checkpoint = 0, 0
+            attached = rs.robot in self.fleet.attached
+            if attached:
+                self.fleet.forget(rs.robot)
+        log.error("robot %s: its mapper is lost (%s); %s", rs.robot, str(exc)[:200],
+                  "detached: it attaches again with its checkpoint" if attached else "its map starts again")
 
     # Fleet: attaches, checkpoints, drain and shedding
     def _on_attach(self, query: zenoh.Query) -> None:
@@ -584,6 +615,9 @@ class MappingService:
         rs.queue.clear()
         if self.map_dir:
             self._export(rs)
+        close = getattr(rs.mapper, "close", None)
+        if close is not None:  # a mapper in a process of its own: freed there
+            close()
         undeclare(rs.ack_pub, rs.cp_pub)
         with self._lock:
             self.counters["evicted"] += 1
@@ -601,8 +635,14 @@ class MappingService:
             query.reply_err(b"busy: another map reply is being built; ask again")
             return
         try:
-            seqs, poses = rs.mapper.trajectory()
-            reply = wire.MapReply(robot=rs.robot, scans=rs.mapper.scans, points=rs.mapper.map_cloud(),
+            mapper = rs.mapper
+            try:
+                seqs, poses = mapper.trajectory()
+                points = mapper.map_cloud()
+            except Exception as exc:  # its mapper process was lost, say
+                query.reply_err(f"no map for robot {robot!r}: {exc}"[:300].encode())
+                return
+            reply = wire.MapReply(robot=rs.robot, scans=mapper.scans, points=points,
                                   seqs=seqs, poses=poses, edge=self.edge_id)
             query.reply(self.keys.map(rs.robot, self.edge_id), wire.encode(reply))
         finally:

@@ -183,8 +183,13 @@ class MapperRecipe:
         return inner
 
     def __call__(self, scan: wire.Scan, spill: Spill | None = None) -> BoundedMapper:
-        inner = self.mapper(scan.max_range, scan.voxel_max)
-        max_range = inner.config.data.max_range
+        return self.bounded(scan.robot, scan.max_range, scan.voxel_max, spill)
+
+    def bounded(self, robot: str, max_range: float, voxel_max: float,
+                spill: Spill | None = None) -> BoundedMapper:
+        """The bounded mapper for ``robot``, sized from what its first scan says."""
+        inner = self.mapper(max_range, voxel_max)
+        kept_range = inner.config.data.max_range
         log.info("robot %s: KISS-ICP voxel %.3f m, max range %.1f m (robot: max range %.1f m, voxel_max "
-                 "%.3f m)", scan.robot, inner.voxel_size, max_range, scan.max_range, scan.voxel_max)
-        return BoundedMapper(inner, max_range, self.trajectory_budget, spill)
+                 "%.3f m)", robot, inner.voxel_size, kept_range, max_range, voxel_max)
+        return BoundedMapper(inner, kept_range, self.trajectory_budget, spill)

@@ -22,6 +22,11 @@ from zoffload.mapping.mapper import Registration
 from zoffload.protocol import wire
 
 
+class MapperLost(RuntimeError):
+    """A robot's mapper is gone (its process died or hung, edge/isolate.py): the service counts it
+    (``mapper_lost``) and the robot's next scan starts a new map."""
+
+
 class Mapper(Protocol):
     """What the service needs of a robot's mapper: ``recipe.BoundedMapper``, or a stand-in."""
 

@@ -29,6 +29,7 @@ at once (a third signal forces the exit, runtime/lifecycle.py).
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 import time
@@ -42,8 +43,10 @@ from zoffload.detect.models import ModelError
 from zoffload.edge.admission import Admission
 from zoffload.edge.detection import DetectorService
 from zoffload.edge.fleet import Fleet
+from zoffload.edge.isolate import MapperPool
 from zoffload.edge.mapping import MappingService
 from zoffload.edge.recipe import MapperRecipe
+from zoffload.edge.robots import MapperFactory
 from zoffload.edge.ros2 import ros2_service
 from zoffload.edge.service import EdgeService
 from zoffload.protocol import wire
@@ -101,7 +104,10 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
                           max_points_per_voxel=m.max_points_per_voxel, deskew=m.deskew,
                           map_resolution=m.map_resolution, map_budget=m.map_budget,
                           trajectory_budget=m.trajectory_budget)
-    return MappingService(keys, recipe if m.enabled else None, queue=m.queue,
+    workers = m.workers or os.cpu_count() or 1
+    processes = workers if m.processes is None else m.processes
+    factory: MapperFactory = MapperPool(recipe, processes) if processes else recipe
+    return MappingService(keys, factory if m.enabled else None, queue=m.queue,
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,
                           map_format=settings.map_format, edge_id=settings.edge_id, workers=m.workers,
                           admission=admitted, limits=wire_limits(settings.limits), fleet=fleet,

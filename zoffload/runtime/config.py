@@ -97,6 +97,10 @@ class MapperSettings(_Strict):
     workers: int | None = Field(
         default=None, ge=1, description="mapping threads serving every robot's queue; unset: one per core",
     )
+    processes: int | None = Field(
+        default=None, ge=0,
+        description="processes the mappers run in (KISS-ICP holds the GIL); unset: one per worker; 0: none",
+    )
     map_budget: int = Field(
         default=2_000_000, ge=1,
         description="global map points kept per robot; beyond it new voxels are counted, not stored",

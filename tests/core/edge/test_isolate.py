@@ -1,0 +1,204 @@
+"""Robots' mappers in processes of their own (edge/isolate.py): the same registrations as in the
+edge's process, errors and trimmed poses carried back, and a process that dies or hangs costs its
+robots their maps (counted, the robot detached to attach again), not the edge."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.core.edge.test_worker_survives import _Pub, _Query, _Sample, _Session
+from zoffload.edge.export import RobotFiles
+from zoffload.edge.isolate import MapperPool
+from zoffload.edge.mapping import MappingService
+from zoffload.edge.recipe import MapperRecipe
+from zoffload.edge.robots import MapperLost
+from zoffload.protocol import wire
+from zoffload.protocol.keys import Keys
+
+pytest.importorskip("kiss_icp")
+
+
+def header(robot: str = "r1") -> wire.Scan:
+    return wire.Scan(robot=robot, seq=0, send_stamp=0.0, capture_stamp=0.0, voxel=0.05, voxel_max=0.05,
+                     max_range=30.0, n_raw=0, points=np.zeros((0, 3), np.float32))
+
+
+def scene(seed: int = 0) -> np.ndarray:
+    """A room's walls and floor with clutter, 12 m across: enough structure for ICP."""
+    rng = np.random.default_rng(seed)
+    n = 4000
+    walls = [np.c_[rng.uniform(-6, 6, n), np.full(n, 6.0), rng.uniform(0, 3, n)],
+             np.c_[np.full(n, -6.0), rng.uniform(-6, 6, n), rng.uniform(0, 3, n)],
+             np.c_[rng.uniform(-6, 6, n), rng.uniform(-6, 6, n), np.zeros(n)],
+             rng.uniform([1, -3, 0], [2, -2, 1.5], (n, 3))]
+    return np.concatenate(walls)
+
+
+def scans(count: int) -> list[np.ndarray]:
+    """The scene seen from a sensor moving 0.1 m along x per scan."""
+    world = scene()
+    return [(world - [0.1 * i, 0.0, 1.0]).astype(np.float32) for i in range(count)]
+
+
+@pytest.fixture
+def pool() -> Iterator[MapperPool]:
+    p = MapperPool(MapperRecipe(), 1, call_timeout=30.0)
+    p.warm_up()
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+def test_a_mapper_in_a_process_registers_as_one_in_the_edge_process(pool: MapperPool) -> None:
+    here, there = MapperRecipe()(header()), pool(header())
+    for seq, pts in enumerate(scans(6)):
+        a, b = here.register(seq, pts), there.register(seq, pts)
+        np.testing.assert_allclose(b.pose, a.pose, atol=1e-9)
+        assert b.map_points == a.map_points
+    assert there.scans == here.scans == 6 and there.map_points == here.map_points
+    assert there.pid != os.getpid()
+    np.testing.assert_allclose(there.trajectory()[1], here.trajectory()[1], atol=1e-9)
+    assert len(there.map_cloud()) == len(here.map_cloud())
+    cp = there.checkpoint("r1", "e1", 1, 0.0)
+    assert cp is not None and cp.seq == 5
+    assert there.predict_from(9, 5, np.eye(4), np.eye(4)) == here.predict_from(9, 5, np.eye(4), np.eye(4))
+    assert there.backfilled_seqs == []
+
+
+def test_errors_come_back_as_what_they_were_and_leave_the_mapper(pool: MapperPool) -> None:
+    m = pool(header())
+    m.register(0, scans(1)[0])
+    with pytest.raises(ValueError, match="no point within"):
+        m.register(1, np.full((10, 3), 1e6, np.float32))
+    assert m.scans == 1
+    assert m.register(1, scans(2)[1]).map_points > 0 and m.scans == 2
+
+
+def test_poses_trimmed_in_the_process_reach_the_robots_spill(tmp_path: Path) -> None:
+    files = RobotFiles(tmp_path, "r1")
+    p = MapperPool(MapperRecipe(trajectory_budget=3), 1)
+    try:
+        m = p(header(), spill=files.spill)
+        for seq, pts in enumerate(scans(8)):
+            m.register(seq, pts)
+        assert files.parts, "no trimmed poses reached the edge's spill"
+        files.export(m, {})
+    finally:
+        p.close()
+    seqs = np.load(tmp_path / "r1_trajectory.npz")["seqs"]
+    assert list(seqs) == list(range(8))  # the whole trajectory: spilled parts and those in memory
+
+
+def test_a_killed_process_costs_its_robots_their_maps_not_the_edge(pool: MapperPool) -> None:
+    m, other = pool(header()), pool(header("r2"))
+    m.register(0, scans(1)[0])
+    pid = m.pid
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    with pytest.raises(MapperLost):
+        m.register(1, scans(2)[1])
+    with pytest.raises(MapperLost):  # the other robot in that process lost its map too
+        other.register(0, scans(1)[0])
+    assert pool.status()["mapper_restarts"] == 1
+    fresh = pool(header())
+    assert fresh.pid != pid and fresh.register(0, scans(1)[0]).map_points > 0
+    m.close()  # a lost mapper closes without asking its old process
+    assert pool.hosts[0].hosted == 1
+
+
+def test_a_hung_process_is_killed_after_the_call_timeout() -> None:
+    p = MapperPool(MapperRecipe(), 1, call_timeout=1.0)
+    try:
+        m = p(header())
+        pid = m.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(MapperLost, match="no answer"):
+            m.register(0, scans(1)[0])
+        assert time.monotonic() - t0 < 10
+        with pytest.raises(ProcessLookupError):  # killed, not left stopped
+            for _ in range(50):
+                os.kill(pid, 0)
+                time.sleep(0.1)
+        assert p(header()).register(0, scans(1)[0]).map_points > 0
+    finally:
+        p.close()
+
+
+def test_closing_the_pool_ends_its_processes() -> None:
+    p = MapperPool(MapperRecipe(), 2)
+    p.warm_up()
+    pids = [h.pid for h in p.hosts]
+    assert len(set(pids)) == 2 and None not in pids
+    p.close()
+    for pid in pids:
+        assert pid is not None
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+def test_the_service_detaches_a_robot_whose_mapper_was_lost_so_it_attaches_again() -> None:
+    keys = Keys()
+    pool = MapperPool(MapperRecipe(), 1)
+    svc = MappingService(keys, pool, edge_id="e1", workers=1)
+    svc._session = _Session()  # type: ignore[assignment]
+    pool.warm_up()
+    for w in svc._workers:
+        w.start()
+    acks = svc._session.pubs.setdefault(keys.scan_ack("r1", "e1"), _Pub())  # type: ignore[attr-defined]
+    pts = scans(6)
+
+    def send(seq: int, answers: int, epoch: int = 1) -> None:
+        scan = wire.Scan(robot="r1", seq=seq, send_stamp=float(seq), capture_stamp=float(seq), voxel=0.0,
+                         voxel_max=0.05, max_range=30.0, n_raw=len(pts[seq]), points=pts[seq], edge="e1",
+                         epoch=epoch)
+        svc._on_scan(_Sample(keys.scan("r1"), wire.encode(scan)))  # type: ignore[arg-type]
+        deadline = time.monotonic() + 20
+        while len(acks.sent) < answers and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def attach(epoch: int, checkpoint: wire.Checkpoint | None = None) -> wire.AttachReply:
+        a = wire.Attach(robot="r1", epoch=epoch, max_range=30.0, voxel_max=0.05, rate_hz=10.0, reads=6,
+                        local_seqs=np.zeros(0, np.int64), local_poses=np.zeros((0, 4, 4)),
+                        checkpoint=wire.encode(checkpoint) if checkpoint is not None else b"")
+        query = _Query(keys.attach("r1", "e1"), wire.encode(a))
+        svc._on_attach(query)  # type: ignore[arg-type]
+        reply: wire.AttachReply = query.got
+        return reply
+
+    try:
+        assert attach(1).accepted
+        send(0, 1)
+        send(1, 2)
+        assert [a.status for a in acks.sent] == ["ok", "ok"]
+        os.kill(pool.hosts[0].pid or 0, signal.SIGKILL)
+        send(2, 3)
+        assert acks.sent[2].status == "error" and "lost" in acks.sent[2].detail
+        assert svc.counters["mapper_lost"] == 1 and "r1" not in svc.fleet.attached
+        send(3, 4)  # refused, as by an edge that lost the robot's state: the robot attaches again
+        assert acks.sent[3].status == "refused"
+        # with the checkpoint the edge sent after its first scan (the robot keeps the latest)
+        cps = svc._session.pubs[keys.checkpoint("r1", "e1")].sent  # type: ignore[attr-defined]
+        assert cps and cps[0].seq == 0
+        assert attach(2, cps[0]).accepted
+        send(4, 5, epoch=2)
+        assert acks.sent[4].status == "ok"
+        # the new mapper continued the checkpoint's trajectory: scan 4 is 0.4 m from scan 0
+        assert abs(acks.sent[4].pose[0, 3] - 0.4) < 0.05, acks.sent[4].pose
+        status = svc.status()
+        assert status["mapper_restarts"] == 1 and status["mapper_processes"] == 1
+        assert status["workers"] == 1
+    finally:
+        svc._stop.set()
+        for w in svc._workers:
+            w.join(5)
+        pool.close()
