@@ -41,6 +41,7 @@ class RobotFiles:
         self.folder = folder
         self.robot = robot
         self.fmt = fmt
+        self.generation = generation
         self.suffix = f".{generation}" if generation else ""
         self.parts: list[Path] = []
         self.spilled = 0  # poses written to part files

@@ -18,10 +18,14 @@ a robot sends the scan down a pipe and waits for the registration with the GIL r
   the mapper trims from memory come back with the reply that trimmed them and go to the robot's
   spill (``map_dir``) in the edge's process.
 * **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer within
-  ``call_timeout`` is killed and started again; the robots it hosted lose their maps: their next
-  call raises ``MapperLost``, the service counts it (``mapper_lost``) and their next scan starts
-  a new map. Errors inside a call (a scan with no point in range, a checkpoint that does not fit
-  its grid) come back as the exception they were and leave the mapper as it was.
+  ``call_timeout`` (30 s; a backfill of 50 scans takes about a second) is killed and started
+  again; the robots it hosted lose their maps: their next call raises ``MapperLost``, and the
+  service counts it (``mapper_lost``) and detaches an attached robot, which attaches again with
+  its checkpoint (edge/mapping.py). Until then the robots in that process wait, as does a map
+  query or an eviction's export that asks it. A process found dead when a new robot's mapper is
+  made there is started again and asked once more (nothing was lost). Errors inside a call (a
+  scan with no point in range, a checkpoint that does not fit its grid) come back as the
+  exception they were.
 * **Bounds.** The processes are fixed; a request carries one scan or one attach's backfill,
   which the codec's limits bound, and a reply one scan's registration or one map.
 
@@ -30,7 +34,9 @@ the edge runs: forking a process that runs Zenoh's threads is not safe, and mult
 ``spawn`` would import the caller's main script again) talking over a socket pair with
 multiprocessing's ``Connection``. ``warm_up`` starts them in parallel; each loads KISS-ICP and the
 map kernels before it says it is ready (about 0.8 s of CPU and 160 MB each). A process whose edge
-died ends when its socket closes. Requests and replies are pickled: only between the edge and
+died ends when its socket closes (one busy in a call, when it answers; Linux's parent-death signal
+is not used: it fires when the *thread* that started the process ends, and restarts start them
+from the edge's worker threads). Requests and replies are pickled: only between the edge and
 its own children, over a socket pair no other process holds; nothing from the network is
 unpickled (the scans reach the mapper decoded and checked by the codec).
 """
@@ -81,8 +87,11 @@ def _sendable(exc: BaseException) -> BaseException:
 
 
 def _serve(conn: Connection, recipe: MapperRecipe) -> None:
-    """A mapper process: answers requests until its pipe closes or it is told to exit."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C stops the edge, which stops this
+    """A mapper process: answers requests until its socket closes or it is told to exit."""
+    # A Ctrl-C or a SIGTERM to the process group stops the edge, which exports its maps through
+    # this process and then closes it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         try:
             recipe.warm_up()
@@ -148,6 +157,7 @@ class _Host:
         self.generation = 0
         self.hosted = 0  # mappers of this generation not yet closed
         self.restarts = 0
+        self.closed = False
         self.pid: int | None = None
         self._proc: Any = None
         self._conn: Connection | None = None
@@ -157,11 +167,17 @@ class _Host:
         ours, theirs = socket.socketpair()
         env = dict(os.environ)
         root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-        with theirs:
-            proc = subprocess.Popen([sys.executable, "-m", "zoffload.edge.isolate", str(theirs.fileno()),
-                                     str(self.index)], pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                                    env=env)
+        if os.path.basename(root) not in ("site-packages", "dist-packages"):  # a source tree: the same one
+            env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+        try:
+            with theirs:
+                proc = subprocess.Popen([sys.executable, "-m", "zoffload.edge.isolate", str(theirs.fileno()),
+                                         str(self.index)], pass_fds=(theirs.fileno(),),
+                                        stdin=subprocess.DEVNULL, env=env)
+        except OSError as exc:  # no process to be had (out of memory, pids): asked again next time
+            ours.close()
+            self._proc = self._conn = None
+            raise MapperLost(f"mapper process {self.index} not started: {exc}") from exc
         conn = Connection(ours.detach())
         try:
             conn.send(self.recipe)
@@ -191,8 +207,10 @@ class _Host:
     def request(self, msg: tuple[Any, ...], timeout: float) -> Reply:
         """Send ``msg`` and wait for the reply (the caller holds ``lock``). A process that dies or
         does not answer within ``timeout`` is started again, and MapperLost raised."""
+        if self.closed:
+            raise MapperLost("the mapper processes are closed (the edge is stopping)")
         if self._conn is None:
-            self.restart("stopped")
+            self.restart("not running")
         self.wait_ready()
         assert self._conn is not None
         try:
@@ -228,6 +246,7 @@ class _Host:
 
     def close(self) -> None:
         with self.lock:
+            self.closed = True
             if self._conn is not None:
                 try:
                     self._conn.send(("exit",))
@@ -290,8 +309,8 @@ class ProcessMapper:
             if host.generation != self._generation:
                 raise MapperLost(f"mapper process {host.index} was restarted; this robot's map is gone")
             status, result, stats, spilled = host.request((op, self._mid, *payload), self.call_timeout)
-        if stats is not None:
-            self._stats = stats
+            if stats is not None:  # (under the lock: a map query's reply must not undo a newer one's)
+                self._stats = stats
         if self._spill is not None:
             for seqs, poses in spilled:
                 self._spill(seqs, poses)
@@ -349,7 +368,7 @@ class MapperPool:
     """The edge's ``MapperFactory`` with every robot's mapper in one of ``processes`` processes
     (see the module docstring)."""
 
-    def __init__(self, recipe: MapperRecipe, processes: int, call_timeout: float = 120.0,
+    def __init__(self, recipe: MapperRecipe, processes: int, call_timeout: float = 30.0,
                  start_timeout: float = 120.0) -> None:
         if processes < 1:
             raise ValueError("a mapper pool needs at least one process")
@@ -381,9 +400,12 @@ class MapperPool:
         with self._lock:
             host = min(self.hosts, key=lambda h: (h.hosted, h.index))
             mid = next(self._ids)
+        new = ("new", mid, scan.robot, scan.max_range, scan.voxel_max)
         with host.lock:
-            status, result, _, _ = host.request(("new", mid, scan.robot, scan.max_range, scan.voxel_max),
-                                                self.call_timeout)
+            try:
+                status, result, _, _ = host.request(new, self.call_timeout)
+            except MapperLost:  # found dead (it died idle): started again, nothing of ours was lost there
+                status, result, _, _ = host.request(new, self.call_timeout)
             if status != "ok":
                 raise result
             host.hosted += 1

@@ -184,9 +184,10 @@ class MappingService:
         if pool_status is not None:
             values.update(pool_status())
         for rs in robots:
-            values[f"{rs.robot}.map_points"] = float(rs.mapper.map_points if rs.mapper else 0)
+            mapper = rs.mapper  # (read once: a lost mapper's worker sets it to None)
+            values[f"{rs.robot}.map_points"] = float(mapper.map_points if mapper else 0)
             values[f"{rs.robot}.queue"] = float(len(rs.queue))
-            overflow = getattr(rs.mapper, "map_overflow", 0)
+            overflow = getattr(mapper, "map_overflow", 0)
             if overflow:
                 values[f"{rs.robot}.map_overflow"] = float(overflow)
         return values
@@ -275,14 +276,19 @@ class MappingService:
         pub = self._session.declare_publisher(
             self.keys.scan_ack(robot, self.edge_id), congestion_control=zenoh.CongestionControl.DROP,
             express=True)
+        rs = RobotSession(robot, pub, self._next_files(robot))
+        self.robots[robot] = rs
+        log.info("new robot %s%s", robot, f" (session {rs.files.generation})" if rs.files.generation else "")
+        return rs
+
+    def _next_files(self, robot: str) -> RobotFiles:
+        """The export files of the robot's next map (``ROBOT_map.G.ply`` from the second on); with
+        the lock held."""
         generation = self._generations.pop(robot, -1) + 1
         self._generations[robot] = generation
         while len(self._generations) > GENERATIONS_KEPT:
             self._generations.popitem(last=False)
-        rs = RobotSession(robot, pub, RobotFiles(self.map_dir, robot, generation, self.map_format))
-        self.robots[robot] = rs
-        log.info("new robot %s%s", robot, f" (session {generation})" if generation else "")
-        return rs
+        return RobotFiles(self.map_dir, robot, generation, self.map_format)
 
     # Registration (the worker pool)
     def _work(self) -> None:
@@ -323,7 +329,7 @@ class MappingService:
         map too far out for its grid, say): counted and logged; the worker lives on. Before, the
         exception ended the worker thread and the robot's later scans were never answered."""
         if isinstance(exc, MapperLost):
-            self._lost(rs, exc)
+            self._lost(rs, exc, rs.checkpoint_epoch)
         self._count(rs, "worker_errors")
         n = rs.counters["worker_errors"]
         if n <= 10 or n % 1000 == 0:
@@ -335,6 +341,13 @@ class MappingService:
         if self.make_mapper is None:
             self._count(rs, "received_only")
             self._ack(rs, item, status="ok", detail="mapping disabled", queue_time=0.0)
+            return
+        if scan.epoch and scan.epoch == rs.lost_epoch:
+            # queued before its mapper was lost: refused as the scans after it are, not mapped
+            # into a new map under the epoch whose map is gone
+            self._count(rs, "refused_lost")
+            self._ack(rs, item, status="refused",
+                      detail=f"not attached (epoch {scan.epoch}): its mapper was lost")
             return
         try:
             if rs.mapper is None:
@@ -354,7 +367,7 @@ class MappingService:
             reg = rs.mapper.register(scan.seq, points, times)
         except Exception as exc:  # a bad scan must not take the worker down
             if isinstance(exc, MapperLost):
-                self._lost(rs, exc)
+                self._lost(rs, exc, scan.epoch)
             self._count(rs, "errors")
             if rs.counters["errors"] <= 10 or rs.counters["errors"] % 1000 == 0:
                 log.warning("robot %s scan %d: registration failed (%d so far): %s", rs.robot, scan.seq,
@@ -371,22 +384,37 @@ class MappingService:
             if rs.checkpoint_epoch != scan.epoch or rs.since_checkpoint >= self.checkpoint_every:
                 self._send_checkpoint(rs, scan.epoch)
 
-    def _lost(self, rs: RobotSession, exc: Exception) -> None:
-        """The robot's mapper is gone (its process died or hung, edge/isolate.py): counted. An
-        attached robot is detached, so its next scans are refused as an edge that lost its state
-        refuses them, and it attaches again with its checkpoint: its new mapper continues its
-        trajectory (its local odometry bridges meanwhile). Another robot's next scan starts a
-        new map, in the frame of that scan."""
+    def _lost(self, rs: RobotSession, exc: Exception, epoch: int) -> None:
+        """The robot's mapper is gone (its process died or hung, edge/isolate.py; ``epoch``: of the
+        scan or checkpoint that found it out): counted. A robot attached under that epoch is
+        detached, so its next scans (those queued already too) are refused as an edge that lost
+        its state refuses them, and it attaches again with its checkpoint: its new mapper
+        continues its trajectory (its local odometry bridges meanwhile). An attach that came
+        meanwhile stays: the new mapper is seeded from it. Another robot's next scan starts a
+        new map, in the frame of that scan, with export files of their own."""
         self._count(rs, "mapper_lost")
+        refused: list[Queued] = []
         with self._lock:
             rs.mapper = None
-            rs.pending = None
             rs.checkpoint_epoch, rs.since_checkpoint = 0, 0
-            attached = rs.robot in self.fleet.attached
-            if attached:
+            entry = self.fleet.attached.get(rs.robot)
+            current = not rs.closed and self.robots.get(rs.robot) is rs
+            detach = current and rs.pending is None and entry is not None and entry.epoch == epoch
+            if detach:
                 self.fleet.forget(rs.robot)
+                rs.lost_epoch = epoch
+                refused = [q for q in rs.queue if q.scan.epoch == epoch]
+                rs.queue = deque(q for q in rs.queue if q.scan.epoch != epoch)
+                rs.counters["refused_lost"] += len(refused)
+                self.counters["refused_lost"] += len(refused)
+            elif current and entry is None and rs.pending is None:
+                rs.files = self._next_files(rs.robot)  # a new map: not merged with the lost one's poses
+        for q in refused:
+            self._ack(rs, q, status="refused", detail=f"not attached (epoch {epoch}): its mapper was lost")
         log.error("robot %s: its mapper is lost (%s); %s", rs.robot, str(exc)[:200],
-                  "detached: it attaches again with its checkpoint" if attached else "its map starts again")
+                  "detached: it attaches again with its checkpoint" if detach
+                  else "its next attach seeds a new one" if rs.pending is not None
+                  else "its map starts again")
 
     # Fleet: attaches, checkpoints, drain and shedding
     def _on_attach(self, query: zenoh.Query) -> None:
@@ -581,9 +609,10 @@ class MappingService:
     def _ack(self, rs: RobotSession, item: Queued, status: str, detail: str = "",
              queue_time: float = float("nan"), reg: Registration | None = None) -> None:
         scan = item.scan
+        mapper = rs.mapper
         ack = _ack_message(rs.robot, scan.seq, scan.send_stamp, status, self.edge_id, scan.epoch, detail,
                            item.interarrival, queue_time, reg,
-                           reg.map_points if reg else (rs.mapper.map_points if rs.mapper else 0))
+                           reg.map_points if reg else (mapper.map_points if mapper else 0))
         try:
             rs.ack_pub.put(wire.encode(ack))
         except Exception as exc:  # the session is closing, or the robot was evicted meanwhile
@@ -637,6 +666,8 @@ class MappingService:
         try:
             mapper = rs.mapper
             try:
+                if mapper is None:
+                    raise MapperLost("its mapper was lost")
                 seqs, poses = mapper.trajectory()
                 points = mapper.map_cloud()
             except Exception as exc:  # its mapper process was lost, say

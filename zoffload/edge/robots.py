@@ -24,7 +24,8 @@ from zoffload.protocol import wire
 
 class MapperLost(RuntimeError):
     """A robot's mapper is gone (its process died or hung, edge/isolate.py): the service counts it
-    (``mapper_lost``) and the robot's next scan starts a new map."""
+    (``mapper_lost``) and detaches an attached robot, which attaches again with its checkpoint;
+    another robot's next scan starts a new map."""
 
 
 class Mapper(Protocol):
@@ -108,6 +109,7 @@ class RobotSession:
     pending: Continue | None = None
     final_pending: bool = False
     checkpoint_epoch: int = 0  # the epoch of its last checkpoint (0: none yet)
+    lost_epoch: int = 0  # the epoch it was detached from when its mapper was lost: its scans refused
     since_checkpoint: int = 0
     last_stamp: float = 0.0  # capture stamp of its last registered scan
     cp_pub: zenoh.Publisher | None = None

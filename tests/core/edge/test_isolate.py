@@ -18,7 +18,7 @@ from zoffload.edge.export import RobotFiles
 from zoffload.edge.isolate import MapperPool
 from zoffload.edge.mapping import MappingService
 from zoffload.edge.recipe import MapperRecipe
-from zoffload.edge.robots import MapperLost
+from zoffload.edge.robots import MapperLost, Queued
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 
@@ -186,6 +186,14 @@ def test_the_service_detaches_a_robot_whose_mapper_was_lost_so_it_attaches_again
         assert svc.counters["mapper_lost"] == 1 and "r1" not in svc.fleet.attached
         send(3, 4)  # refused, as by an edge that lost the robot's state: the robot attaches again
         assert acks.sent[3].status == "refused"
+        # a scan of that epoch queued before the loss is refused too, not mapped into a new map
+        rs = svc.robots["r1"]
+        assert rs.lost_epoch == 1 and rs.mapper is None
+        queued = wire.Scan(robot="r1", seq=3, send_stamp=3.0, capture_stamp=3.0, voxel=0.0, voxel_max=0.05,
+                           max_range=30.0, n_raw=len(pts[3]), points=pts[3], edge="e1", epoch=1)
+        svc._register(rs, Queued(queued, time.monotonic(), 0.1))
+        assert acks.sent[4].status == "refused" and rs.mapper is None and svc.counters["refused_lost"] == 1
+        del acks.sent[4]
         # with the checkpoint the edge sent after its first scan (the robot keeps the latest)
         cps = svc._session.pubs[keys.checkpoint("r1", "e1")].sent  # type: ignore[attr-defined]
         assert cps and cps[0].seq == 0
@@ -202,3 +210,24 @@ def test_the_service_detaches_a_robot_whose_mapper_was_lost_so_it_attaches_again
         for w in svc._workers:
             w.join(5)
         pool.close()
+
+
+def test_a_process_that_died_idle_is_started_again_for_a_new_robot_without_a_loss(pool: MapperPool) -> None:
+    pid = pool.hosts[0].pid
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    time.sleep(0.2)
+    m = pool(header())  # no MapperLost: nothing of this robot's was in the dead process
+    assert m.pid != pid and m.register(0, scans(1)[0]).map_points > 0
+    assert pool.status()["mapper_restarts"] == 1
+
+
+def test_a_closed_pool_starts_no_process() -> None:
+    p = MapperPool(MapperRecipe(), 1)
+    m = p(header())
+    p.close()
+    with pytest.raises(MapperLost, match="closed"):
+        m.register(0, scans(1)[0])
+    assert p.hosts[0].pid is not None and p.status()["mapper_restarts"] == 0
+    with pytest.raises(MapperLost, match="closed"):
+        p(header())
