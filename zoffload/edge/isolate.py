@@ -5,7 +5,7 @@ process a registration (31 ms for an HDL-64 scan) stalls every other thread of i
 callbacks that stamp scans' arrival, the other robots' queues, the detector's service and the
 fleet's status (``python -m benchmarks.bench_gil``: a thread sleeping 1 ms beside it woke 30 ms
 late at p99, 86 ms at most), and however many cores the edge has, its robots are registered
-one at a time. ``MapperPool`` (``mapper.processes``, by default one per mapping worker) keeps a
+one at a time. ``MapperPool`` (``mapper.processes``, by default one per two cores) keeps a
 fixed set of worker processes that host the robots' mappers; the edge's worker thread that holds
 a robot sends the scan down a pipe and waits for the registration with the GIL released.
 

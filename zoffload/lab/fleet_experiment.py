@@ -43,6 +43,7 @@ from zoffload.lab.fleet_scenario import (
     parse_traces,
     robot_ids,
 )
+from zoffload.lab.proctree import tree_cpu_s
 from zoffload.lab.runner import (
     ROBOT_SNDBUF,
     Spawned,
@@ -82,8 +83,9 @@ class FleetExperiment:
 
 
 class CpuSampler:
-    """CPU seconds of each child process, sampled every half second with psutil (a killed
-    process keeps its last sample)."""
+    """CPU seconds of each child process and the processes it started (the edge's mapper
+    processes: lab/proctree.py), sampled every half second with psutil (a killed process keeps
+    its last sample)."""
 
     def __init__(self, period: float = 0.5) -> None:
         import psutil
@@ -110,11 +112,12 @@ class CpuSampler:
             procs = list(self._procs.items())
         for name, p in procs:
             try:
-                t = p.cpu_times()
+                # (never less than it had: a killed edge, a zombie until reaped, no longer has the
+                # mapper processes it started as children)
+                cpu = max(tree_cpu_s(p), self.figures[name]["cpu_s"])
                 wall = time.time() - p.create_time()
             except self._psutil.Error:
                 continue
-            cpu = t.user + t.system
             self.figures[name].update(cpu_s=cpu, wall_s=wall, cores=cpu / wall if wall > 0 else 0.0)
 
     def _loop(self, period: float) -> None:

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from zoffload.lab.proctree import tree_cpu_s, tree_resources
 from zoffload.lab.runner import (
     Spawned,
     StatusWatcher,
@@ -109,23 +110,22 @@ def _camera_available() -> bool:
 
 
 class _Probe:
-    """CPU, memory, threads and fds of one child process."""
+    """CPU, memory, threads and fds of one child process and the processes it started (the edge's
+    mapper processes: lab/proctree.py)."""
 
     def __init__(self, pid: int) -> None:
         import psutil
 
         self.proc = psutil.Process(pid)
-        self._cpu = sum(self.proc.cpu_times()[:2])
+        self._cpu = tree_cpu_s(self.proc)
         self._t = time.monotonic()
 
     def sample(self) -> dict[str, float]:
         import psutil
 
         try:
-            with self.proc.oneshot():
-                cpu = sum(self.proc.cpu_times()[:2])
-                values = {"rss_mb": self.proc.memory_info().rss / 2**20, "threads": self.proc.num_threads(),
-                          "fds": self.proc.num_fds()}
+            cpu = max(tree_cpu_s(self.proc), self._cpu)  # (a child gone unreaped drops out of the sum)
+            values = tree_resources(self.proc)
         except psutil.Error:
             return {}
         now = time.monotonic()

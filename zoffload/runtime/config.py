@@ -99,7 +99,7 @@ class MapperSettings(_Strict):
     )
     processes: int | None = Field(
         default=None, ge=0,
-        description="processes the mappers run in (KISS-ICP holds the GIL); unset: one per worker; 0: none",
+        description="processes the mappers run in (KISS-ICP holds the GIL); unset: one per 2 cores; 0: none",
     )
     map_budget: int = Field(
         default=2_000_000, ge=1,
