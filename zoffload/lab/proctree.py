@@ -30,8 +30,8 @@ def tree_resources(proc: Any) -> dict[str, float]:
     import psutil
 
     with proc.oneshot():
-        values = {"rss_mb": proc.memory_info().rss / 2**20, "threads": float(proc.num_threads()),
-                  "fds": float(proc.num_fds())}
+        values: dict[str, float] = {"rss_mb": proc.memory_info().rss / 2**20,
+                                    "threads": proc.num_threads(), "fds": proc.num_fds()}  # (ints)
     for child in proc.children(recursive=True):
         try:
             with child.oneshot():

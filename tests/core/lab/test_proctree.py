@@ -35,6 +35,7 @@ def test_a_parents_figures_count_its_running_children() -> None:
         values = tree_resources(p)
         assert values["rss_mb"] - p.memory_info().rss / 2**20 >= 50
         assert values["threads"] >= 2 and values["fds"] >= 2
+        assert isinstance(values["threads"], int) and isinstance(values["fds"], int)  # the soak's CSV counts
     finally:
         for c in psutil.Process(parent.pid).children(recursive=True):
             c.kill()
