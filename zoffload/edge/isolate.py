@@ -176,7 +176,6 @@ class _Host:
                                         stdin=subprocess.DEVNULL, env=env)
         except OSError as exc:  # no process to be had (out of memory, pids): asked again next time
             ours.close()
-            self._proc = self._conn = None
             raise MapperLost(f"mapper process {self.index} not started: {exc}") from exc
         conn = Connection(ours.detach())
         try:

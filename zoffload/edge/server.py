@@ -106,8 +106,8 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
                           trajectory_budget=m.trajectory_budget)
     # Unset: one mapper process per two cores (each KISS-ICP runs its threads over every core, and
     # each process costs 0.8 s of CPU and 160 MB to start), at most one per worker
-    workers = m.workers or os.cpu_count() or 1
-    processes = max(1, min(workers, (os.cpu_count() or 1) // 2)) if m.processes is None else m.processes
+    cores = os.cpu_count() or 1
+    processes = max(1, min(m.workers or cores, cores // 2)) if m.processes is None else m.processes
     factory: MapperFactory = MapperPool(recipe, processes) if processes else recipe
     return MappingService(keys, factory if m.enabled else None, queue=m.queue,
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,

@@ -43,7 +43,7 @@ from zoffload.lab.fleet_scenario import (
     parse_traces,
     robot_ids,
 )
-from zoffload.lab.proctree import tree_cpu_s
+from zoffload.lab.proctree import TreeCpu
 from zoffload.lab.runner import (
     ROBOT_SNDBUF,
     Spawned,
@@ -100,7 +100,7 @@ class CpuSampler:
 
     def add(self, name: str, pid: int) -> None:
         try:
-            p = self._psutil.Process(pid)
+            p = TreeCpu(self._psutil.Process(pid))
             with self._lock:
                 self._procs[name] = p
                 self.figures[name] = {"pid": pid, "cpu_s": 0.0, "wall_s": 0.0, "cores": 0.0}
@@ -112,10 +112,8 @@ class CpuSampler:
             procs = list(self._procs.items())
         for name, p in procs:
             try:
-                # (never less than it had: a killed edge, a zombie until reaped, no longer has the
-                # mapper processes it started as children)
-                cpu = max(tree_cpu_s(p), self.figures[name]["cpu_s"])
-                wall = time.time() - p.create_time()
+                cpu = p.read()
+                wall = time.time() - p.proc.create_time()
             except self._psutil.Error:
                 continue
             self.figures[name].update(cpu_s=cpu, wall_s=wall, cores=cpu / wall if wall > 0 else 0.0)

@@ -24,6 +24,21 @@ def tree_cpu_s(proc: Any) -> float:
     return total
 
 
+class TreeCpu:
+    """``tree_cpu_s`` of one process, never less than it read before: a child that ended and was
+    not yet reaped, or the children of a killed process (a zombie until reaped, its children no
+    longer listed), drop out of the sum."""
+
+    def __init__(self, proc: Any) -> None:
+        self.proc = proc
+        self.cpu_s = 0.0
+
+    def read(self) -> float:
+        """The process tree's CPU seconds now (raises ``psutil.Error`` when ``proc`` is gone)."""
+        self.cpu_s = max(tree_cpu_s(self.proc), self.cpu_s)
+        return self.cpu_s
+
+
 def tree_resources(proc: Any) -> dict[str, float]:
     """Resident memory (MB), threads and open fds of ``proc`` and its running children, summed
     (raises ``psutil.Error`` when ``proc`` is gone)."""

@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from zoffload.lab.proctree import tree_cpu_s, tree_resources
+from zoffload.lab.proctree import TreeCpu, tree_resources
 from zoffload.lab.runner import (
     Spawned,
     StatusWatcher,
@@ -117,14 +117,15 @@ class _Probe:
         import psutil
 
         self.proc = psutil.Process(pid)
-        self._cpu = tree_cpu_s(self.proc)
+        self._tree = TreeCpu(self.proc)
+        self._cpu = self._tree.read()
         self._t = time.monotonic()
 
     def sample(self) -> dict[str, float]:
         import psutil
 
         try:
-            cpu = max(tree_cpu_s(self.proc), self._cpu)  # (a child gone unreaped drops out of the sum)
+            cpu = self._tree.read()
             values = tree_resources(self.proc)
         except psutil.Error:
             return {}
