@@ -4,7 +4,7 @@ and the robot as clients, the robot behind `zoffload link`). After every restart
 resume (nothing stuck), and at the end its counters balance: every scan produced is in exactly one
 bucket.
 
-The default run: 3 restarts and 10 flaps; ``-m slow``: the issue's 20 restarts and 100 flaps."""
+The default run: 2 restarts and 8 flaps; ``-m slow``: the issue's 20 restarts and 100 flaps."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ def run_faults(tmp: Path, restarts: int, flaps: int) -> None:
 
 
 def test_edge_restarts_and_link_flaps_leave_the_robot_balanced(tmp_path: Path) -> None:
-    run_faults(tmp_path, restarts=3, flaps=10)
+    run_faults(tmp_path, restarts=2, flaps=8)
 
 
 @pytest.mark.slow

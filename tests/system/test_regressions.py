@@ -245,7 +245,7 @@ def test_5000_fake_robot_ids_cost_no_threads_and_a_real_robot_keeps_its_acks(tmp
         watch = EdgeWatch(s, proc.p.pid)
         try:
             robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
-                         + ["--max-scans", "150", "--out", str(tmp_path / "robot")],
+                         + ["--max-scans", "100", "--out", str(tmp_path / "robot")],
                          tmp_path / "robot.log")
             watch.wait("received", 10, 60)  # the real robot is being served
             threads, base = watch.threads(), watch.reset_peak()

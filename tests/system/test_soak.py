@@ -26,7 +26,7 @@ def run(out: Path, duration: float, period: float, camera: str = "off") -> dict:
 
 
 def test_a_short_soak_records_resources_and_counters(tmp_path: Path) -> None:
-    s = run(tmp_path, 12, 2)
+    s = run(tmp_path, 8, 1.2)
     rows = list(csv.DictReader(open(tmp_path / "soak.csv")))
     assert len(rows) == s["samples"] >= 5
     assert all(float(r["edge.rss_mb"]) > 50 and int(r["robot.threads"]) > 0 and int(r["edge.fds"]) > 0

@@ -202,7 +202,9 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
         + "\n".join([line for line in edge.text().splitlines() if " DEBUG " not in line][-20:]))
 
 
-@pytest.mark.parametrize("mbps", [None, 40])
+# (through the emulated link: -m slow; tests/core/robot/test_encoding.py keeps JPEG where a trial
+# frame is slow, without the link)
+@pytest.mark.parametrize("mbps", [None, pytest.param(40, marks=pytest.mark.slow)])
 def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_where_not(
         free_port: int, tmp_path: Path, coco_dir: Path, models_dir: Path, mbps: int | None) -> None:
     """``encoding: auto`` through a real link: on loopback a trial raw frame takes the link a few ms

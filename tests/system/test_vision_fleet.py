@@ -45,7 +45,7 @@ def test_each_frame_is_detected_by_one_edge_and_frames_move_when_it_goes(tmp_pat
     ports = {edge: free_tcp_port() for edge in EDGES}
     cfg = {
         "scans": "none", "images": f"coco-clips:{coco_dir}", "out_dir": str(tmp_path / "robot"),
-        "perception": {"local_threads": 1, "strategy": "edge", "max_frames": 400, "encoding": "jpeg"},
+        "perception": {"local_threads": 1, "strategy": "edge", "max_frames": 250, "encoding": "jpeg"},
         "zenoh": {"connect": [f"tcp/127.0.0.1:{p}" for p in ports.values()], "multicast_scouting": False,
                   "shared_memory": False},
     }
@@ -84,7 +84,7 @@ def test_each_frame_is_detected_by_one_edge_and_frames_move_when_it_goes(tmp_pat
         session.close()
     run = tmp_path / "robot"
     m = json.loads((run / "vision_metrics.json").read_text())
-    assert m["balanced"] and m["balance"]["frames_in"] == 400 and m["balance"]["pending"] == 0, m["balance"]
+    assert m["balanced"] and m["balance"]["frames_in"] == 250 and m["balance"]["pending"] == 0, m["balance"]
     with open(run / "frames.csv") as f:
         rows = list(csv.DictReader(f))
     sent = [r for r in rows if r["bytes"]]  # put on the link (its byte count is booked then)
