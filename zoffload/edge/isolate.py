@@ -17,11 +17,12 @@ a robot sends the scan down a pipe and waits for the registration with the GIL r
   with every reply, so reading them (the edge's status) never waits for a registration; poses
   the mapper trims from memory come back with the reply that trimmed them and go to the robot's
   spill (``map_dir``) in the edge's process.
-* **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer within
-  ``call_timeout`` (30 s; a backfill of 50 scans takes about a second) is killed and started
-  again; the robots it hosted lose their maps: their next call raises ``MapperLost``, and the
-  service counts it (``mapper_lost``) and detaches an attached robot, which attaches again with
-  its checkpoint (edge/mapping.py). Until then the robots in that process wait, as does a map
+* **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer in time is
+  killed and started again: a scan's registration within ``register_timeout`` (5 s, a hundred
+  times an HDL-64 scan's), any other call (an attach's backfill of 50 scans takes about a second,
+  an export grows with the map) within ``call_timeout`` (30 s). The robots it hosted lose their
+  maps: their next call raises ``MapperLost``, and the service counts it (``mapper_lost``) and
+  detaches an attached robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in that process wait, as does a map
   query or an eviction's export that asks it. A process found dead when a new robot's mapper is
   made there is started again and asked once more (nothing was lost). Errors inside a call (a
   scan with no point in range, a checkpoint that does not fit its grid) come back as the
@@ -257,12 +258,15 @@ class _Host:
 class ProcessMapper:
     """A robot's mapper in a mapper process (see the module docstring)."""
 
-    def __init__(self, host: _Host, mid: int, spill: Spill | None, call_timeout: float) -> None:
+    def __init__(self, host: _Host, mid: int, spill: Spill | None, call_timeout: float,
+                 register_timeout: float | None = None) -> None:
         self._host = host
         self._mid = mid
         self._generation = host.generation
         self._spill = spill
         self.call_timeout = call_timeout
+        # a scan's registration (and its prior's prediction): one scan, tens of ms
+        self.register_timeout = call_timeout if register_timeout is None else register_timeout
         self._stats: dict[str, int] = dict.fromkeys(STATS, 0)
         self._closed = False
 
@@ -300,14 +304,15 @@ class ProcessMapper:
     def pid(self) -> int | None:
         return self._host.pid
 
-    def _request(self, op: str, *payload: Any) -> Any:
+    def _request(self, op: str, *payload: Any, timeout: float | None = None) -> Any:
         host = self._host
         with host.lock:
             if self._closed:
                 raise MapperLost("mapper closed")
             if host.generation != self._generation:
                 raise MapperLost(f"mapper process {host.index} was restarted; this robot's map is gone")
-            status, result, stats, spilled = host.request((op, self._mid, *payload), self.call_timeout)
+            status, result, stats, spilled = host.request((op, self._mid, *payload),
+                                                          timeout or self.call_timeout)
             if stats is not None:  # (under the lock: a map query's reply must not undo a newer one's)
                 self._stats = stats
         if self._spill is not None:
@@ -321,7 +326,8 @@ class ProcessMapper:
         return self._request("call", method, args, kwargs)
 
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
-        reg: Registration = self._call("register", seq, points, times)
+        reg: Registration = self._request("call", "register", (seq, points, times), {},
+                                          timeout=self.register_timeout)
         return reg
 
     def map_cloud(self) -> np.ndarray:
@@ -345,7 +351,8 @@ class ProcessMapper:
         return cp
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
-        return bool(self._call("predict_from", seq, prior_seq, pose, delta))
+        return bool(self._request("call", "predict_from", (seq, prior_seq, pose, delta), {},
+                                  timeout=self.register_timeout))
 
     def close(self) -> None:
         """Free the mapper in its process (the robot was evicted; its map exported before)."""
@@ -368,11 +375,12 @@ class MapperPool:
     (see the module docstring)."""
 
     def __init__(self, recipe: MapperRecipe, processes: int, call_timeout: float = 30.0,
-                 start_timeout: float = 120.0) -> None:
+                 start_timeout: float = 120.0, register_timeout: float = 5.0) -> None:
         if processes < 1:
             raise ValueError("a mapper pool needs at least one process")
         self.recipe = recipe
         self.call_timeout = call_timeout
+        self.register_timeout = register_timeout
         self.hosts = [_Host(recipe, i, start_timeout) for i in range(processes)]
         self._ids = itertools.count(1)
         self._lock = threading.Lock()
@@ -408,7 +416,7 @@ class MapperPool:
             if status != "ok":
                 raise result
             host.hosted += 1
-            return ProcessMapper(host, mid, spill, self.call_timeout)
+            return ProcessMapper(host, mid, spill, self.call_timeout, self.register_timeout)
 
     def status(self) -> dict[str, float]:
         return {"mapper_processes": float(len(self.hosts)),

@@ -108,7 +108,8 @@ def mapping_service(settings: EdgeSettings, keys: Keys, admitted: Admission | No
     # each process costs 0.8 s of CPU and 160 MB to start), at most one per worker
     cores = os.cpu_count() or 1
     processes = max(1, min(m.workers or cores, cores // 2)) if m.processes is None else m.processes
-    factory: MapperFactory = MapperPool(recipe, processes) if processes else recipe
+    factory: MapperFactory = (MapperPool(recipe, processes, call_timeout=m.call_timeout,
+                                         register_timeout=m.register_timeout) if processes else recipe)
     return MappingService(keys, factory if m.enabled else None, queue=m.queue,
                           map_dir=Path(settings.map_dir) if settings.map_dir else None,
                           map_format=settings.map_format, edge_id=settings.edge_id, workers=m.workers,

@@ -101,6 +101,14 @@ class MapperSettings(_Strict):
         default=None, ge=0,
         description="processes the mappers run in (KISS-ICP holds the GIL); unset: one per 2 cores; 0: none",
     )
+    register_timeout: float = Field(
+        default=5.0, gt=0,
+        description="s a mapper process may take to register a scan before it is killed and restarted",
+    )
+    call_timeout: float = Field(
+        default=30.0, gt=0,
+        description="s a mapper process may take for other calls (an attach's backfill, a map export)",
+    )
     map_budget: int = Field(
         default=2_000_000, ge=1,
         description="global map points kept per robot; beyond it new voxels are counted, not stored",

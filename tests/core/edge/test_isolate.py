@@ -115,20 +115,23 @@ def test_a_killed_process_costs_its_robots_their_maps_not_the_edge(pool: MapperP
 
 
 def test_a_hung_process_is_killed_after_the_call_timeout() -> None:
-    p = MapperPool(MapperRecipe(), 1, call_timeout=1.0)
+    """A registration gets ``register_timeout``, any other call ``call_timeout``; the process is
+    killed, not left stopped, and the next robot gets a new one."""
+    p = MapperPool(MapperRecipe(), 1, call_timeout=2.0, register_timeout=0.5)
     try:
-        m = p(header())
-        pid = m.pid
-        assert pid is not None
-        os.kill(pid, signal.SIGSTOP)
-        t0 = time.monotonic()
-        with pytest.raises(MapperLost, match="no answer"):
-            m.register(0, scans(1)[0])
-        assert time.monotonic() - t0 < 10
-        with pytest.raises(ProcessLookupError):  # killed, not left stopped
-            for _ in range(50):
-                os.kill(pid, 0)
-                time.sleep(0.1)
+        for call, limit in ((lambda m: m.register(0, scans(1)[0]), "0.5"), (lambda m: m.map_cloud(), "2")):
+            m = p(header())
+            pid = m.pid
+            assert pid is not None
+            os.kill(pid, signal.SIGSTOP)
+            t0 = time.monotonic()
+            with pytest.raises(MapperLost, match=f"no answer in {limit} s"):
+                call(m)
+            assert time.monotonic() - t0 < 10
+            with pytest.raises(ProcessLookupError):  # killed, not left stopped
+                for _ in range(50):
+                    os.kill(pid, 0)
+                    time.sleep(0.1)
         assert p(header()).register(0, scans(1)[0]).map_points > 0
     finally:
         p.close()
