@@ -181,7 +181,7 @@ def test_a_mapper_process_killed_mid_run_costs_the_robot_no_pose(free_port: int,
                        if "zoffload.edge.isolate" in " ".join(c.cmdline())]
             assert len(mappers) == edge_status.values.get("mapper_processes", len(mappers)) >= 1
             robot = Proc(script("zoffload-robot") + session_args(connect=free_port)
-                         + ["--max-scans", "130", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
+                         + ["--max-scans", "150", "--out", str(tmp_path / "robot")], tmp_path / "robot.log")
             wait_for(lambda: status.values.get("acked", 0) >= 15, 60, "15 scans acked")
             for m in mappers:
                 m.send_signal(sig)
@@ -194,16 +194,21 @@ def test_a_mapper_process_killed_mid_run_costs_the_robot_no_pose(free_port: int,
     assert code == 0, edge.text()
     metrics = json.loads((tmp_path / "robot" / "robot_metrics.json").read_text())
     b, fleet = metrics["balance"], metrics["fleet"]
-    assert metrics["balanced"] and b["produced"] == 130
+    assert metrics["balanced"] and b["produced"] == 150
     # refused once, mapped locally through the refusal back-off (5 s), then attached again with its
     # checkpoint, the scans it mapped meanwhile backfilled: mapped by the edge again, no pose lost.
-    # The scan in the lost call comes back as an error, or (a hung call, 2 s) is lost to the robot's
-    # ack timeout first; the scans queued behind a hung call are dropped (counted)
+    # The scan in the lost call comes back as an error (killed), or is lost to the robot's ack
+    # timeout first (hung: the edge gives up 2 s into the call, or up to 4 s into writing a request
+    # the stopped process does not read); the scans queued behind a hung call are dropped (counted)
     assert fleet["attaches"] == 2 and fleet["moves"] == {"refused": 1}, fleet
-    assert b["edge_error"] + b["lost"] == 1 and b["edge_refused"] <= 2, b
+    if sig == signal.SIGKILL:
+        assert b["edge_error"] == 1 and b["lost"] == 0, b
+    else:
+        assert b["lost"] == 1 and b["edge_error"] == 0 and b["edge_dropped"] >= 1, b
+        assert "no answer in 2 s" in edge.text() or "Resource temporarily unavailable" in edge.text()
+    assert b["edge_refused"] <= 2, b
     assert b["acked"] >= 30 and b["local"] >= 10, b
     assert fleet["max_pose_gap_scans"] <= 1, fleet
     assert "mapper is lost" in edge.text()
-    assert (sig != signal.SIGSTOP) or "no answer in 2 s" in edge.text()
     for m in mappers:
         assert not m.is_running() or m.status() == psutil.STATUS_ZOMBIE

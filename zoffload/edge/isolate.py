@@ -18,15 +18,19 @@ a robot sends the scan down a pipe and waits for the registration with the GIL r
   the mapper trims from memory come back with the reply that trimmed them and go to the robot's
   spill (``map_dir``) in the edge's process.
 * **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer in time is
-  killed and started again: a scan's registration within ``register_timeout`` (5 s, a hundred
-  times an HDL-64 scan's), any other call (an attach's backfill of 50 scans takes about a second,
-  an export grows with the map) within ``call_timeout`` (30 s). The robots it hosted lose their
-  maps: their next call raises ``MapperLost``, and the service counts it (``mapper_lost``) and
-  detaches an attached robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in that process wait, as does a map
-  query or an eviction's export that asks it. A process found dead when a new robot's mapper is
-  made there is started again and asked once more (nothing was lost). Errors inside a call (a
-  scan with no point in range, a checkpoint that does not fit its grid) come back as the
-  exception they were.
+  killed and started again. In time: a scan's registration (and its prior's prediction) within
+  ``register_timeout`` (5 s, a hundred times an HDL-64 scan's), any other call (an attach's
+  backfill of 50 scans takes about a second, an export grows with the map) within
+  ``call_timeout`` (30 s); a process that used CPU through the timeout (a busy host, not a hang)
+  is waited for up to ``call_timeout`` (counted, ``mapper_slow_calls``), one that did not
+  (stopped, deadlocked) is lost. A request the process does not read from for 2 s (stopped,
+  its socket's buffer full) loses it too. The robots it hosted lose their maps: their next call
+  raises ``MapperLost``, and the service counts it (``mapper_lost``) and detaches an attached
+  robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in
+  that process wait, as does a map query or an eviction's export that asks it. A process found
+  dead when a new robot's mapper is made there is started again and asked once more (nothing
+  was lost). Errors inside a call (a scan with no point in range, a checkpoint that does not fit
+  its grid) come back as the exception they were.
 * **Bounds.** The processes are fixed; a request carries one scan or one attach's backfill,
   which the codec's limits bound, and a reply one scan's registration or one map.
 
@@ -50,6 +54,7 @@ import os
 import pickle
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -70,6 +75,11 @@ log = logging.getLogger("zoffload.edge.mapping")
 STATS = ("map_points", "scans", "map_overflow", "backfilled", "backfill_unused", "backfill_posed")
 CALLS = frozenset({"register", "map_cloud", "trajectory", "continue_from", "checkpoint", "predict_from"})
 GETS = frozenset({"backfilled_seqs"})
+# A request goes to an idle process (one at a time): a write that makes no progress for this long
+# (the process stopped with the socket's buffer full: a scan is larger) means the process is lost.
+# (SO_SNDTIMEO bounds each write: a request whose first write got part of it in is lost after
+# twice this at most.)
+SEND_TIMEOUT_S = 2
 # A reply: "ok" or "err", the result (or the exception), the mapper's STATS, the poses it trimmed
 Reply = tuple[str, Any, "dict[str, int] | None", "list[tuple[np.ndarray, np.ndarray]]"]
 
@@ -147,6 +157,18 @@ def _serve(conn: Connection, recipe: MapperRecipe) -> None:
             conn.send(("err", RuntimeError(f"reply not sendable: {exc}"), None, []))
 
 
+def _cpu_ticks(pid: int | None) -> int | None:
+    """A process's CPU time so far in clock ticks (user + system, /proc), None where unknown."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 class _Host:
     """One mapper process and its pipe (one request at a time: ``lock``)."""
 
@@ -158,6 +180,7 @@ class _Host:
         self.generation = 0
         self.hosted = 0  # mappers of this generation not yet closed
         self.restarts = 0
+        self.slow_calls = 0  # calls that outlasted their timeout but were still working
         self.closed = False
         self.pid: int | None = None
         self._proc: Any = None
@@ -178,6 +201,7 @@ class _Host:
         except OSError as exc:  # no process to be had (out of memory, pids): asked again next time
             ours.close()
             raise MapperLost(f"mapper process {self.index} not started: {exc}") from exc
+        ours.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("ll", SEND_TIMEOUT_S, 0))
         conn = Connection(ours.detach())
         try:
             conn.send(self.recipe)
@@ -204,9 +228,11 @@ class _Host:
             raise MapperLost(f"mapper process {self.index} did not start: {msg[1]}")
         self._ready, self.pid = True, int(msg[1])
 
-    def request(self, msg: tuple[Any, ...], timeout: float) -> Reply:
-        """Send ``msg`` and wait for the reply (the caller holds ``lock``). A process that dies or
-        does not answer within ``timeout`` is started again, and MapperLost raised."""
+    def request(self, msg: tuple[Any, ...], timeout: float, patience: float | None = None) -> Reply:
+        """Send ``msg`` and wait for the reply (the caller holds ``lock``). A process that dies, or
+        does not answer within ``timeout`` and has not used the CPU in that time (stopped,
+        deadlocked), is started again, and MapperLost raised; one still working (a busy host) is
+        waited for, ``timeout`` at a time, up to ``patience`` in all (counted: ``slow_calls``)."""
         if self.closed:
             raise MapperLost("the mapper processes are closed (the edge is stopping)")
         if self._conn is None:
@@ -215,8 +241,19 @@ class _Host:
         assert self._conn is not None
         try:
             self._conn.send(msg)
-            if not self._conn.poll(timeout):
-                raise TimeoutError(f"no answer in {timeout:g} s")
+            waited, slow = 0.0, False
+            cpu = _cpu_ticks(self._proc.pid if self._proc is not None else None)
+            while not self._conn.poll(timeout):
+                waited += timeout
+                now = _cpu_ticks(self._proc.pid if self._proc is not None else None)
+                if cpu is None or now is None or now <= cpu or waited >= (patience or timeout):
+                    raise TimeoutError(f"no answer in {waited:g} s" + (
+                        "" if now is None or cpu is None or now > cpu else ", no CPU used meanwhile"))
+                cpu, slow = now, True
+            if slow:
+                self.slow_calls += 1
+                log.warning("mapper process %d answered after %g s (still working at %g s)", self.index,
+                            waited, timeout)
             reply: Reply = self._conn.recv()
             return reply
         except (EOFError, OSError, TimeoutError) as exc:
@@ -311,8 +348,9 @@ class ProcessMapper:
                 raise MapperLost("mapper closed")
             if host.generation != self._generation:
                 raise MapperLost(f"mapper process {host.index} was restarted; this robot's map is gone")
-            status, result, stats, spilled = host.request((op, self._mid, *payload),
-                                                          timeout or self.call_timeout)
+            status, result, stats, spilled = host.request(
+                (op, self._mid, *payload), self.call_timeout if timeout is None else timeout,
+                patience=self.call_timeout)
             if stats is not None:  # (under the lock: a map query's reply must not undo a newer one's)
                 self._stats = stats
         if self._spill is not None:
@@ -378,6 +416,8 @@ class MapperPool:
                  start_timeout: float = 120.0, register_timeout: float = 5.0) -> None:
         if processes < 1:
             raise ValueError("a mapper pool needs at least one process")
+        if min(call_timeout, register_timeout, start_timeout) <= 0:
+            raise ValueError("a mapper pool's timeouts must be positive")
         self.recipe = recipe
         self.call_timeout = call_timeout
         self.register_timeout = register_timeout
@@ -420,7 +460,8 @@ class MapperPool:
 
     def status(self) -> dict[str, float]:
         return {"mapper_processes": float(len(self.hosts)),
-                "mapper_restarts": float(sum(h.restarts for h in self.hosts))}
+                "mapper_restarts": float(sum(h.restarts for h in self.hosts)),
+                "mapper_slow_calls": float(sum(h.slow_calls for h in self.hosts))}
 
     def close(self) -> None:
         for h in self.hosts:

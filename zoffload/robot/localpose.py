@@ -19,8 +19,9 @@ Two situations, one light KISS-ICP (robot/odometry.py):
 And when the robot has moved because its edge's token went (a dead process: the move is at once,
 no bridging happened), the scans in flight to it are registered here at the first scan under the
 new assignment, so they have poses too. When that attach takes longer than a period, the scans
-read meanwhile are registered here with no edge (after the attach went, so it does not carry
-them), and the next edge's first scans carry the newest of them as their prior instead.
+read meanwhile are registered here with no edge, and the next edge's first scans carry no prior:
+the attach handed the poses over, and a prior (the robot's own pose, drifted) could undo the
+correction the edge finds when it registers an attach's backfill (mapping/mapper.py ``_backfill``).
 
 Either way a period starts from the freshest checkpoint (the edge's or our own) and the newest
 poses the robot has after it (the edge's acked ones, or its own of an earlier period), and first
@@ -121,16 +122,13 @@ class PoseKeeper:
             return False
         self._bridging, self._target = False, None
         with self.lock:  # the next attach hands this period's poses over
-            self._bridge_from, self._prior_from = None, None
+            self._bridge_from, self._local, self._prior_from = None, None, None
         if not odo.active:
             self._begin(reading.seq, "no edge")
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         with self.lock:
             self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
             self.pose = (pose, 1.0)
-            # The newest local registration: an attach that went before it did not hand it over,
-            # so the next edge's first scans carry it as their prior (``attached``)
-            self._local = (reading.seq, pose, odo.motion)
         return True
 
     def attached(self, reading: Reading, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
@@ -145,15 +143,7 @@ class PoseKeeper:
         if odo is None:
             return None
         previous, self._target = self._target, target
-        if previous is None:
-            with self.lock:
-                if self._local is not None and self._prior_from is None:
-                    # The first scan to an edge after scans mapped here (no edge mapped the
-                    # robot: a dead edge's move went through an attach that took longer than a
-                    # period). Those registered after the attach went are not in it; the prior
-                    # brings the newest (an edge that has it already ignores it, ``predict_from``)
-                    self._prior_from = reading.seq
-        elif previous != target:
+        if previous is not None and previous != target:
             with self.lock:  # another assignment: the attach handed the poses over
                 self._bridge_from, self._local, self._prior_from = None, None, None
             self._bridging = False  # so a bridge to the new edge is one of its own, ended by its acks

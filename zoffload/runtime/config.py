@@ -103,7 +103,7 @@ class MapperSettings(_Strict):
     )
     register_timeout: float = Field(
         default=5.0, gt=0,
-        description="s a mapper process may take to register a scan before it is killed and restarted",
+        description="s a mapper process may take to register a scan (unless busy on the CPU) until killed",
     )
     call_timeout: float = Field(
         default=30.0, gt=0,

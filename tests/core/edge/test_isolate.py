@@ -137,6 +137,49 @@ def test_a_hung_process_is_killed_after_the_call_timeout() -> None:
         p.close()
 
 
+def big_scans(count: int, dense: int) -> list[np.ndarray]:
+    """``scans`` ``dense`` times as dense (16k points each time: 100 times, ~0.5 s to send and
+    register a scan)."""
+    noise = np.random.default_rng(1).normal(0, 0.02, (dense, 1, 3)).astype(np.float32)
+    return [(s[None] + noise).reshape(-1, 3) for s in scans(count)]
+
+
+def test_a_busy_process_is_waited_for_past_the_register_timeout() -> None:
+    """A registration that outlasts ``register_timeout`` while its process uses the CPU (a busy
+    host, not a hang) is waited for, up to ``call_timeout``, and counted: no map lost."""
+    p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=0.1)
+    try:
+        m = p(header())
+        for i, points in enumerate(big_scans(2, 100)):
+            assert m.register(i, points).map_points > 0
+        st = p.status()
+        assert st["mapper_slow_calls"] >= 1 and st["mapper_restarts"] == 0, st
+    finally:
+        p.close()
+
+
+def test_a_request_that_cannot_be_written_loses_the_process(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process stopped with a request larger than its socket's buffer: the write times out
+    (``SEND_TIMEOUT_S``) instead of holding the edge's worker, and the process is started again."""
+    from zoffload.edge import isolate
+
+    monkeypatch.setattr(isolate, "SEND_TIMEOUT_S", 1)
+    p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=60.0)
+    try:
+        m = p(header())
+        pid = m.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(MapperLost):
+            m.register(0, big_scans(1, 20)[0])  # 3.8 MB
+        assert time.monotonic() - t0 < 10
+        assert p.status()["mapper_restarts"] == 1
+        assert p(header()).register(0, scans(1)[0]).map_points > 0
+    finally:
+        p.close()
+
+
 def test_closing_the_pool_ends_its_processes() -> None:
     p = MapperPool(MapperRecipe(), 2)
     p.warm_up()

@@ -167,11 +167,12 @@ def test_scans_in_flight_to_a_dead_edge_get_local_poses_after_the_move(edge_run:
     assert 33 not in ledger.poses and keeper.metrics()["caught_up"] == 2
 
 
-def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_as_the_prior(edge_run: tuple) -> None:
+def test_after_a_slow_attach_the_next_edge_gets_no_prior(edge_run: tuple) -> None:
     """The dead edge's move goes through an attach that takes longer than a period: the scans
-    read meanwhile are mapped here with no edge (after the attach went, so it did not hand them
-    over). The next edge's first scans carry the newest of them as their prior, until it answers
-    (CI 86 lost it: the prior was dropped with the no-edge period)."""
+    read meanwhile are mapped here with no edge, and the next edge's first scans carry no prior
+    (its poses come with the attach; the robot's own, drifted pose could undo the correction the
+    edge finds registering an attach's backfill). The prior after a dead edge is for the road
+    where the attach is in place by the next scan (test above)."""
     import threading
     import time
 
@@ -194,18 +195,9 @@ def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_as_the_pri
     # edge1 died; the attach to edge2 is under way: scans 32 and 33 have no edge
     for i in (32, 33):
         assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
-    assert {30, 31, 32, 33} <= set(ledger.poses)
+    assert {30, 31, 32, 33} <= set(ledger.poses) and ledger.records[31]["pose_source"] == "local"
     assert keeper.attached(Reading(34, src.read(34), time.time()), ("edge2", 2)) is None
-    got = keeper.prior_for(34)
-    assert got is not None and got[0] == 33 and np.allclose(got[1][0], ledger.poses[33])
-    assert keeper.prior_for(35) is not None  # until edge2 answers a scan from 34 on
-    keeper.edge_pose(34, mapper.poses[34])
-    assert keeper.prior_for(35) is None
-    # A first attach with no local scans before it carries nothing
-    fresh = PoseKeeper(LocalOdometry("robot1", src.max_range), FleetState("robot1", failover_after=1.0),
-                       ScanLedger(), threading.Lock(), period=0.1, failover_after=1.0)
-    assert fresh.attached(Reading(0, src.read(0), time.time()), ("edge2", 2)) is None
-    assert fresh.prior_for(0) is None
+    assert keeper.prior_for(34) is None and not odo.active
 
 
 def test_a_period_starts_from_the_newest_poses_the_robot_has_its_own_included(edge_run: tuple) -> None:

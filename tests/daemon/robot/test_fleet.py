@@ -248,7 +248,8 @@ def test_after_a_kill_the_next_edge_gets_the_poses_after_the_checkpoint_and_the_
     (before: only its local odometry's, none here), and the robot's first scans to it carry, as
     their prior, the local pose of the newest unanswered scan (registered once the robot moved,
     after the attach went), so the next edge predicts from the robot's newest pose instead of
-    stretching the checkpoint's motion over every scan since."""
+    stretching the checkpoint's motion over every scan since. (When the attach is not in place by
+    the next scan, the scans between are mapped with no edge and the first scans carry no prior.)"""
     with fleet_hub(free_port) as (edges, stop):
         a = FakeEdge(free_port, "edgeA", checkpoints=1)
         edges.append(a)
@@ -291,13 +292,15 @@ def test_after_a_kill_the_next_edge_gets_the_poses_after_the_checkpoint_and_the_
     unanswered = [s for s, r in led.records.items()
                   if r.get("edge") == "edgeA" and r.get("pose_source") == "local"]
     assert unanswered and robot.poses is not None and robot.poses.bridges == 0
-    # (when the attach to B took longer than a period, the robot mapped the scans between
-    # here, with no edge: the newest of those is the prior)
     first = b.scans[0]
-    newest = max(s for s, r in led.records.items() if r.get("pose_source") == "local" and s < first.seq)
-    assert newest >= max(unanswered)
-    assert first.prior is not None and first.prior_seq == newest < first.seq
-    assert np.allclose(first.prior[0], led.poses[newest])
+    between = [s for s, r in led.records.items()
+               if max(unanswered) < s < first.seq and r.get("pose_source") == "local"]
+    if between:  # the attach to B took longer than a period (a loaded host, CI once): the scans
+        # between were mapped here with no edge, and B's first scans carry no prior (localpose.py)
+        assert first.prior is None and b.scans[-1].prior is None, (between, first.prior_seq)
+        return
+    assert first.prior is not None and first.prior_seq == max(unanswered) < first.seq
+    assert np.allclose(first.prior[0], led.poses[max(unanswered)])
     assert b.scans[-1].prior is None  # B answered: the prior ends
 
 
