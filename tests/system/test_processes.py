@@ -46,6 +46,10 @@ def test_robot_and_edge_processes_map_the_simulator(free_port: int, tmp_path: Pa
     assert (tmp_path / "edge" / "edge_config.yaml").exists()
 
 
+# -m slow: the same road (the robot maps through a dead edge with no pose gap) is run by default in
+# test_faults.py (the edge SIGKILLed twice behind a flapping link), the fleet kills (test_fleet.py)
+# and the lost mapper process below
+@pytest.mark.slow
 def test_robot_survives_the_edge_dying_mid_run(free_port: int, tmp_path: Path) -> None:
     with client(free_port) as s:
         edge = start_edge(s, edge_args(free_port), tmp_path / "edge.log")
@@ -198,14 +202,15 @@ def test_a_mapper_process_killed_mid_run_costs_the_robot_no_pose(free_port: int,
     # refused once, mapped locally through the refusal back-off (5 s), then attached again with its
     # checkpoint, the scans it mapped meanwhile backfilled: mapped by the edge again, no pose lost.
     # The scan in the lost call comes back as an error (killed), or is lost to the robot's ack
-    # timeout first (hung: the edge gives up 2 s into the call, or up to 4 s into writing a request
-    # the stopped process does not read); the scans queued behind a hung call are dropped (counted)
+    # timeout first (hung: the edge gives up once a 2 s wait saw no CPU used, or up to 4 s into writing
+    # a request the stopped process does not read); the scans queued behind it are dropped (counted)
     assert fleet["attaches"] == 2 and fleet["moves"] == {"refused": 1}, fleet
     if sig == signal.SIGKILL:
         assert b["edge_error"] == 1 and b["lost"] == 0, b
     else:
         assert b["lost"] == 1 and b["edge_error"] == 0 and b["edge_dropped"] >= 1, b
-        assert "no answer in 2 s" in edge.text() or "Resource temporarily unavailable" in edge.text()
+        # (2 s into the call, or 4 s when it still used the CPU in the first 2 s: stopped mid-call)
+        assert "no CPU used meanwhile" in edge.text() or "Resource temporarily unavailable" in edge.text()
     assert b["edge_refused"] <= 2, b
     assert b["acked"] >= 30 and b["local"] >= 10, b
     assert fleet["max_pose_gap_scans"] <= 1, fleet
