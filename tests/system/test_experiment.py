@@ -109,6 +109,9 @@ def test_bad_trace_or_policy_is_a_config_error(tmp_path: Path) -> None:
          "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=60).stderr
 
 
+# -m slow (two whole runs): tests/core/lab/test_report.py makes one row of repeated runs, and
+# tests/core/lab/test_detect_sweep.py repeats runs into their folders with their own seeds
+@pytest.mark.slow
 def test_repeated_runs_make_one_row_with_mean_and_spread(tmp_path: Path) -> None:
     out = tmp_path / "rate"
     r = subprocess.run(script("zoffload") + ["experiment", "scan", "--trace", "ethernet", "--policy", "rate",
@@ -124,6 +127,7 @@ def test_repeated_runs_make_one_row_with_mean_and_spread(tmp_path: Path) -> None
     assert "| rate+q16d (2 runs) | ethernet |" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow  # a whole run for one retry; the harness's starts run in every test here
 def test_an_edge_that_cannot_listen_is_started_again_on_other_ports(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     """A port taken between being picked and the edge listening on it (a detection sweep lost a run

@@ -172,7 +172,7 @@ def test_after_a_slow_attach_the_next_edge_gets_no_prior(edge_run: tuple) -> Non
     read meanwhile are mapped here with no edge, and the next edge's first scans carry no prior
     (its poses come with the attach; the robot's own, drifted pose could undo the correction the
     edge finds registering an attach's backfill). The prior after a dead edge is for the road
-    where the attach is in place by the next scan (test above)."""
+    where the attach is in place by the next scan (tests/daemon/robot/test_fleet.py)."""
     import threading
     import time
 
