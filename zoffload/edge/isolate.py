@@ -63,6 +63,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
+import psutil
 
 from zoffload.edge.recipe import BoundedMapper, MapperRecipe, Spill
 from zoffload.edge.robots import MapperLost
@@ -157,16 +158,15 @@ def _serve(conn: Connection, recipe: MapperRecipe) -> None:
             conn.send(("err", RuntimeError(f"reply not sendable: {exc}"), None, []))
 
 
-def _cpu_ticks(pid: int | None) -> int | None:
-    """A process's CPU time so far in clock ticks (user + system, /proc), None where unknown."""
-    if pid is None:
+def _cpu_s(proc: psutil.Process | None) -> float | None:
+    """A process's CPU seconds so far (user + system), None where unknown (it is gone)."""
+    if proc is None:
         return None
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-        return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
-    except (OSError, IndexError, ValueError):
+        t = proc.cpu_times()
+    except psutil.Error:
         return None
+    return float(t.user + t.system)
 
 
 class _Host:
@@ -184,6 +184,7 @@ class _Host:
         self.closed = False
         self.pid: int | None = None
         self._proc: Any = None
+        self._ps: psutil.Process | None = None  # the same process, for its CPU time
         self._conn: Connection | None = None
         self._ready = False
 
@@ -207,7 +208,11 @@ class _Host:
             conn.send(self.recipe)
         except OSError:  # it died at once: found by wait_ready
             pass
-        self._proc, self._conn, self._ready, self.pid = proc, conn, False, None
+        try:
+            ps: psutil.Process | None = psutil.Process(proc.pid)
+        except psutil.Error:  # it died at once: found by wait_ready
+            ps = None
+        self._proc, self._ps, self._conn, self._ready, self.pid = proc, ps, conn, False, None
         self.generation += 1
         self.hosted = 0
 
@@ -241,16 +246,16 @@ class _Host:
         assert self._conn is not None
         try:
             self._conn.send(msg)
-            waited, slow = 0.0, False
-            cpu = _cpu_ticks(self._proc.pid if self._proc is not None else None)
+            waited, cpu = 0.0, _cpu_s(self._ps)
             while not self._conn.poll(timeout):
                 waited += timeout
-                now = _cpu_ticks(self._proc.pid if self._proc is not None else None)
-                if cpu is None or now is None or now <= cpu or waited >= (patience or timeout):
-                    raise TimeoutError(f"no answer in {waited:g} s" + (
-                        "" if now is None or cpu is None or now > cpu else ", no CPU used meanwhile"))
-                cpu, slow = now, True
-            if slow:
+                now = _cpu_s(self._ps)
+                idle = cpu is not None and now is not None and now <= cpu
+                if idle or cpu is None or now is None or waited >= (patience or timeout):
+                    why = ", no CPU used meanwhile" if idle else ""
+                    raise TimeoutError(f"no answer in {waited:g} s{why}")
+                cpu = now
+            if waited:
                 self.slow_calls += 1
                 log.warning("mapper process %d answered after %g s (still working at %g s)", self.index,
                             waited, timeout)
@@ -270,7 +275,7 @@ class _Host:
 
     def _stop(self) -> None:
         proc, conn = self._proc, self._conn
-        self._proc = self._conn = None
+        self._proc = self._conn = self._ps = None
         self._ready = False
         if conn is not None:
             conn.close()
@@ -296,14 +301,14 @@ class ProcessMapper:
     """A robot's mapper in a mapper process (see the module docstring)."""
 
     def __init__(self, host: _Host, mid: int, spill: Spill | None, call_timeout: float,
-                 register_timeout: float | None = None) -> None:
+                 register_timeout: float) -> None:
         self._host = host
         self._mid = mid
         self._generation = host.generation
         self._spill = spill
         self.call_timeout = call_timeout
         # a scan's registration (and its prior's prediction): one scan, tens of ms
-        self.register_timeout = call_timeout if register_timeout is None else register_timeout
+        self.register_timeout = register_timeout
         self._stats: dict[str, int] = dict.fromkeys(STATS, 0)
         self._closed = False
 
@@ -363,9 +368,11 @@ class ProcessMapper:
     def _call(self, method: str, *args: Any, **kwargs: Any) -> Any:
         return self._request("call", method, args, kwargs)
 
+    def _call_within(self, timeout: float, method: str, *args: Any) -> Any:
+        return self._request("call", method, args, {}, timeout=timeout)
+
     def register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None) -> Registration:
-        reg: Registration = self._request("call", "register", (seq, points, times), {},
-                                          timeout=self.register_timeout)
+        reg: Registration = self._call_within(self.register_timeout, "register", seq, points, times)
         return reg
 
     def map_cloud(self) -> np.ndarray:
@@ -389,8 +396,7 @@ class ProcessMapper:
         return cp
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
-        return bool(self._request("call", "predict_from", (seq, prior_seq, pose, delta), {},
-                                  timeout=self.register_timeout))
+        return bool(self._call_within(self.register_timeout, "predict_from", seq, prior_seq, pose, delta))
 
     def close(self) -> None:
         """Free the mapper in its process (the robot was evicted; its map exported before)."""
