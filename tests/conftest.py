@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -40,6 +41,24 @@ def models_dir() -> Path:
     if not (MODELS / "nanodet_m_320.onnx").is_file():
         pytest.skip(f"detector models not found at {MODELS} (set ZOFFLOAD_DATA)")
     return MODELS
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """The default run has two workers (pytest-xdist, `-n 2` in pyproject's addopts). The system
+    tests run one after another on one of them: they start daemons, routers, detectors and network
+    namespaces, assert on timing and mostly wait. The core and daemon tests are handed out one at
+    a time to whichever worker is free, so they run beside them. (xdist's own `--dist loadgroup`
+    renames node ids to group them, which pytest 9.2 no longer lets it do.)"""
+    if config.getvalue("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SystemTestsInTurn(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return "tests/system" if nodeid.startswith("tests/system/") else nodeid
+
+    return SystemTestsInTurn(config, log)
 
 
 _EXIT = {"status": 0}
