@@ -17,20 +17,22 @@ a robot sends the scan down a pipe and waits for the registration with the GIL r
   with every reply, so reading them (the edge's status) never waits for a registration; poses
   the mapper trims from memory come back with the reply that trimmed them and go to the robot's
   spill (``map_dir``) in the edge's process.
-* **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer in time is
-  killed and started again. In time: a scan's registration (and its prior's prediction) within
-  ``register_timeout`` (5 s, a hundred times an HDL-64 scan's), any other call (an attach's
-  backfill of 50 scans takes about a second, an export grows with the map) within
-  ``call_timeout`` (30 s); a process that used CPU through the timeout (a busy host, not a hang)
-  is waited for up to ``call_timeout`` (counted, ``mapper_slow_calls``), one that did not
-  (stopped, deadlocked) is lost. A request the process does not read from for 2 s (stopped,
-  its socket's buffer full) loses it too. The robots it hosted lose their maps: their next call
-  raises ``MapperLost``, and the service counts it (``mapper_lost``) and detaches an attached
-  robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in
-  that process wait, as does a map query or an eviction's export that asks it. A process found
-  dead when a new robot's mapper is made there is started again and asked once more (nothing
-  was lost). Errors inside a call (a scan with no point in range, a checkpoint that does not fit
-  its grid) come back as the exception they were.
+* **Faults.** A process that dies (a crash inside KISS-ICP) or does not answer in time is killed and
+  started again. In time: a scan's registration (and its prior's prediction) within
+  ``register_timeout`` (5 s, a hundred times an HDL-64 scan's), any other call (an attach's backfill
+  of 50 scans takes about a second, an export grows with the map) within ``call_timeout`` (30 s); a
+  process that used CPU through the timeout (a busy host, not a hang) is waited for up to
+  ``call_timeout`` (counted, ``mapper_slow_calls``), one that did not (stopped, deadlocked) is lost,
+  and so is a registration that has used ``register_timeout`` seconds of CPU (a busy host stretches
+  a call's wall time, not its CPU time: that one is running away, an endless loop; it is lost at the
+  first timeout after, not at ``call_timeout``). A request the process does not read from for 2 s
+  (stopped, its socket's buffer full) loses it too. The robots it hosted lose their maps: their next
+  call raises ``MapperLost``, and the service counts it (``mapper_lost``) and detaches an attached
+  robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in that
+  process wait, as does a map query or an eviction's export that asks it. A process found dead when
+  a new robot's mapper is made there is started again and asked once more (nothing was lost). Errors
+  inside a call (a scan with no point in range, a checkpoint that does not fit its grid) come back
+  as the exception they were.
 * **Bounds.** The processes are fixed; a request carries one scan or one attach's backfill,
   which the codec's limits bound, and a reply one scan's registration or one map.
 
@@ -233,11 +235,15 @@ class _Host:
             raise MapperLost(f"mapper process {self.index} did not start: {msg[1]}")
         self._ready, self.pid = True, int(msg[1])
 
-    def request(self, msg: tuple[Any, ...], timeout: float, patience: float | None = None) -> Reply:
+    def request(self, msg: tuple[Any, ...], timeout: float, patience: float | None = None,
+                budget: float | None = None) -> Reply:
         """Send ``msg`` and wait for the reply (the caller holds ``lock``). A process that dies, or
         does not answer within ``timeout`` and has not used the CPU in that time (stopped,
         deadlocked), is started again, and MapperLost raised; one still working (a busy host) is
-        waited for, ``timeout`` at a time, up to ``patience`` in all (counted: ``slow_calls``)."""
+        waited for, ``timeout`` at a time, up to ``patience`` in all (counted: ``slow_calls``),
+        unless the call has used ``budget`` seconds of CPU: then it is not slowed by a busy host
+        (that stretches a call's wall time, not its CPU time) but running away (an endless loop),
+        and lost too."""
         if self.closed:
             raise MapperLost("the mapper processes are closed (the edge is stopping)")
         if self._conn is None:
@@ -247,12 +253,16 @@ class _Host:
         try:
             self._conn.send(msg)
             waited, cpu = 0.0, _cpu_s(self._ps)
+            start = cpu
             while not self._conn.poll(timeout):
                 waited += timeout
                 now = _cpu_s(self._ps)
                 idle = cpu is not None and now is not None and now <= cpu
-                if idle or cpu is None or now is None or waited >= (patience or timeout):
-                    why = ", no CPU used meanwhile" if idle else ""
+                spent = now - start if now is not None and start is not None else 0.0
+                runaway = budget is not None and spent >= budget
+                if idle or runaway or cpu is None or now is None or waited >= (patience or timeout):
+                    why = (", no CPU used meanwhile" if idle else
+                           f", {spent:.2f} s of CPU used (its budget {budget:g} s)" if runaway else "")
                     raise TimeoutError(f"no answer in {waited:g} s{why}")
                 cpu = now
             if waited:
@@ -353,9 +363,10 @@ class ProcessMapper:
                 raise MapperLost("mapper closed")
             if host.generation != self._generation:
                 raise MapperLost(f"mapper process {host.index} was restarted; this robot's map is gone")
+            # a call with a timeout of its own (a scan's registration) has as many seconds of CPU
             status, result, stats, spilled = host.request(
                 (op, self._mid, *payload), self.call_timeout if timeout is None else timeout,
-                patience=self.call_timeout)
+                patience=self.call_timeout, budget=timeout)
             if stats is not None:  # (under the lock: a map query's reply must not undo a newer one's)
                 self._stats = stats
         if self._spill is not None:

@@ -4,8 +4,10 @@ robots their maps (counted, the robot detached to attach again), not the edge.""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -144,16 +146,61 @@ def big_scans(count: int, dense: int) -> list[np.ndarray]:
     return [(s[None] + noise).reshape(-1, 3) for s in scans(count)]
 
 
+@contextlib.contextmanager
+def starved(pid: int, running: float = 0.2, cycle: float = 0.1) -> Iterator[None]:
+    """A stand-in for a host too busy to give the process more than ``running`` of a core: it is
+    stopped and continued every ``cycle`` seconds (a fake: real contention would take the cores
+    from the tests running beside this one)."""
+    done = threading.Event()
+
+    def duty() -> None:
+        while not done.is_set():
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(cycle * (1 - running))
+            os.kill(pid, signal.SIGCONT)
+            time.sleep(cycle * running)
+
+    t = threading.Thread(target=duty, daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        done.set()
+        t.join()
+        os.kill(pid, signal.SIGCONT)
+
+
 def test_a_busy_process_is_waited_for_past_the_register_timeout() -> None:
     """A registration that outlasts ``register_timeout`` while its process uses the CPU (a busy
-    host, not a hang) is waited for, up to ``call_timeout``, and counted: no map lost."""
+    host, not a hang) and stays within as many seconds of CPU is waited for, up to
+    ``call_timeout``, and counted: no map lost."""
+    p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=1.0)
+    try:
+        m = p(header())
+        assert m.pid is not None
+        with starved(m.pid):  # a fifth of a core: ~0.3 s of CPU a scan (640k points) takes ~1.5 s
+            for i, points in enumerate(big_scans(2, 40)):
+                assert m.register(i, points).map_points > 0
+        st = p.status()
+        assert st["mapper_slow_calls"] >= 1 and st["mapper_restarts"] == 0, st
+    finally:
+        p.close()
+
+
+def test_a_registration_that_runs_away_with_the_cpu_is_lost_at_its_timeout() -> None:
+    """A registration still working at ``register_timeout`` that has used that much CPU is not
+    slowed by a busy host but running away (here: 1.6M points, ~0.6 s of CPU, against a 0.1 s
+    timeout): the process is given up then, not at ``call_timeout``, and started again."""
     p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=0.1)
     try:
         m = p(header())
-        for i, points in enumerate(big_scans(2, 100)):
-            assert m.register(i, points).map_points > 0
+        t0 = time.monotonic()
+        with pytest.raises(MapperLost, match=r"s of CPU used \(its budget 0.1 s\)"):
+            m.register(0, big_scans(1, 100)[0])
+        assert time.monotonic() - t0 < 10
         st = p.status()
-        assert st["mapper_slow_calls"] >= 1 and st["mapper_restarts"] == 0, st
+        assert st["mapper_restarts"] == 1 and st["mapper_slow_calls"] == 0, st
+        assert p(header()).register(0, scans(1)[0]).map_points > 0
     finally:
         p.close()
 
