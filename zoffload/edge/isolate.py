@@ -406,8 +406,10 @@ class ProcessMapper:
                                                 coded)
         return cp
 
-    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
-        return bool(self._call_within(self.register_timeout, "predict_from", seq, prior_seq, pose, delta))
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
+                     contest: bool = False) -> bool:
+        return bool(self._call_within(self.register_timeout, "predict_from", seq, prior_seq, pose, delta,
+                                      contest))
 
     def close(self) -> None:
         """Free the mapper in its process (the robot was evicted; its map exported before)."""

@@ -134,8 +134,9 @@ class BoundedMapper:
         self._trim()
         return seeded
 
-    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
-        return self.inner.predict_from(seq, prior_seq, pose, delta)
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
+                     contest: bool = False) -> bool:
+        return self.inner.predict_from(seq, prior_seq, pose, delta, contest)
 
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False, coded: bool = True) -> wire.Checkpoint | None:

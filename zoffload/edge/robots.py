@@ -55,7 +55,8 @@ class FleetMapper(Mapper, Protocol):
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False, coded: bool = True) -> wire.Checkpoint | None: ...
 
-    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool: ...
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
+                     contest: bool = False) -> bool: ...
 
 
 class MapperFactory(Protocol):

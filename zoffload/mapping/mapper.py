@@ -237,6 +237,10 @@ class RobotMapper:
         self.registered = 0  # scans registered here (the trajectory also holds the robot's poses)
         self.after_gap = 0  # of them, scans after a gap
         self.guessed = 0  # of those, registered from more than one guess (_register_after_gap)
+        # (seq, pose, motion per scan, last seq) of this mapper's own model before ``predict_from``
+        # took the robot's estimate for scan seq (a guess that estimate must beat), and the robot's
+        # motion per scan
+        self._own: tuple[int, np.ndarray, np.ndarray, int, np.ndarray] | None = None
         self.turned = 0  # of those, registered from a turned guess
         self.backfilled = 0  # scans registered from an attach's backfill (continue_from)
         self.backfilled_seqs: deque[int] = deque(maxlen=BACKFILL_SEQS_KEPT)  # which, the newest
@@ -260,16 +264,18 @@ class RobotMapper:
         # constant-velocity model over the gap, and bring it back to one period afterwards.
         gap = int(seq) - self.last_seq if self.last_seq is not None else 1
         stretch = 1 < gap <= self.max_gap
+        own, self._own = self._own, None
+        own_guess = self._own_guess(int(seq), own)
         previous = self.odometry.last_pose.copy()
-        if stretch and len(stamps):
+        if (stretch or own_guess is not None) and len(stamps):
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        after_gap = stretch and not self.odometry.local_map.empty()
+        after_gap = (stretch or own_guess is not None) and not self.odometry.local_map.empty()
         self.after_gap += after_gap
         gap_motion = ""
         if after_gap:
-            guesses, spare = self._gap_guesses(gap, frame)
+            guesses, spare = self._gap_guesses(gap, frame, own_guess)
             keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses, spare)
         else:
             if stretch:
@@ -282,6 +288,19 @@ class RobotMapper:
                 self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
+        if own_guess is not None and own is not None:
+            # The motion on from here: not from the pose one period before the robot's estimate
+            # (where its pose was off, the registration's correction of it would become a
+            # velocity of metres a scan) but the robot's own motion per scan, or, when this
+            # mapper's guess won, the motion from its own last scan
+            _, own_pose, _, before, robot_delta = own
+            if gap_motion == "own":
+                previous, gap = own_pose, int(seq) - before
+                self.odometry.last_delta = as_rigid(se3_power(np.linalg.inv(previous) @ pose, 1.0 / gap))
+                log.warning("scan %d: the robot's estimate of its pose lost to this mapper's own guess", seq)
+            else:
+                previous, gap = pose @ np.linalg.inv(robot_delta), 1
+                self.odometry.last_delta = robot_delta
         if 1 <= gap <= self.max_gap and self.last_seq is not None:  # the yaw per period since the last
             d = np.linalg.inv(previous) @ pose
             yaw = abs(float(np.arctan2(d[1, 0], d[0, 0]))) / gap
@@ -303,7 +322,17 @@ class RobotMapper:
             gap_motion=gap_motion,
         )
 
-    def _gap_guesses(self, gap: int, frame: np.ndarray) -> tuple[Guesses, Guesses]:
+    def _own_guess(self, seq: int, own: tuple[int, np.ndarray, np.ndarray, int, np.ndarray] | None
+                   ) -> tuple[str, np.ndarray] | None:
+        """This mapper's own constant-velocity guess for ``seq`` when ``predict_from`` replaced it
+        with the robot's estimate (``own``, kept by it), within ``max_gap`` of its last scan."""
+        if own is None or own[0] != seq or not 0 < seq - own[3] <= self.max_gap:
+            return None
+        _, pose, delta, last, _ = own
+        return "own", pose @ as_rigid(se3_power(delta, seq - last))
+
+    def _gap_guesses(self, gap: int, frame: np.ndarray, own: tuple[str, np.ndarray] | None = None
+                     ) -> tuple[Guesses, Guesses]:
         """The initial guesses for a scan ``gap`` periods after the last one, in two lists: the
         first of ``gap_motions`` and each other that moves the scan's points farther from where
         the first puts them than KISS-ICP's correspondence distance (3 sigma), tried in turn; and
@@ -321,11 +350,16 @@ class RobotMapper:
         costs the edge time that holds the robot's window (README, "Lost scans"). Within reach is
         not always reached: after a few gaps sigma grows (1.6 m: a reach of 4.8 m), and at a
         turn's onset three periods after the last scan ICP settled 20 degrees off from a kept
-        guess 2.9 m from the right one; those are the spare guesses."""
+        guess 2.9 m from the right one; those are the spare guesses.
+        ``own``: after ``predict_from`` took the robot's estimate (the first guess is then the
+        robot's), this mapper's own guess, one more of the others: the robot's odometry can be
+        wrong (a gap in a turn), and an edge that took its estimate as it was jumped 3 m at the
+        scan that carried it (the simulator's ``wifi-locations``, scan 358 of a run on 2026-12-07:
+        0.06 m off before it, 5.2 m at the run's end)."""
         odo = self.odometry
         sigma = odo.adaptive_threshold.get_threshold()
         motions = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
-                   for name, factor in self.gap_motions]
+                   for name, factor in self.gap_motions] + ([own] if own is not None else [])
         first = motions[0][1]
         reach = 3 * sigma
         ranges = np.linalg.norm(frame[:, :3], axis=1)
@@ -414,6 +448,7 @@ class RobotMapper:
         its local poses; with them the first can be predicted after a gap the local poses (those
         after the robot's checkpoint) do not cover."""
         seeded = False
+        self._own = None
         if checkpoint is not None:  # the turn rate the last mapper learnt (version 8; 0: not said)
             self.turn_rate = max(self.turn_rate, min(float(checkpoint.turn_rate), TURN_RATE_MAX))
         carried = self._backfill(backfill, local_seqs, local_poses, backfill_poses) if backfill else None
@@ -543,7 +578,8 @@ class RobotMapper:
         after = seqs > end
         return seqs[after], np.einsum("ij,njk->nik", correction, poses[after])
 
-    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> bool:
+    def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
+                     contest: bool = False) -> bool:
         """Take the robot's own estimate (its pose after scan ``prior_seq`` and its motion per scan
         then, in this mapper's world frame) as the prediction for scan ``seq``, when this mapper
         missed scans before ``seq`` that the estimate covers: over a gap the constant-velocity
@@ -551,11 +587,14 @@ class RobotMapper:
         outage puts the next scan metres off (KISS-ICP then converges to a wrong place). A
         following scan (no gap), an estimate no newer than this mapper's last scan, or one older
         than ``max_gap`` scans is ignored. Returns whether it was taken; the next ``register``
-        of ``seq`` predicts ``pose @ delta^(seq - prior_seq)``."""
+        of ``seq`` predicts ``pose @ delta^(seq - prior_seq)``, and with ``contest`` (a scan's
+        ``prior``, from the network) tries this mapper's own guess too (``_gap_guesses``)."""
         last = self.last_seq
         if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
             return False
         delta = as_rigid(np.asarray(delta, np.float64))
+        self._own = (int(seq), self.odometry.last_pose.copy(), self.odometry.last_delta.copy(),
+                     last, delta) if contest else None
         # The pose one period before the estimate, so that register() stretches the motion
         # over (seq - prior_seq + 1) periods from there
         self.odometry.last_pose = as_rigid(np.asarray(pose, np.float64) @ np.linalg.inv(delta))

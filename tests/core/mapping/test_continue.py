@@ -12,7 +12,7 @@ import pytest
 
 from zoffload.edge.recipe import MapperRecipe
 from zoffload.mapping.checkpoint import config_matches, take_checkpoint
-from zoffload.mapping.mapper import RobotMapper, motion_per_scan
+from zoffload.mapping.mapper import RobotMapper, _yaw, motion_per_scan
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.sources.simulated import SimulatedSource
@@ -181,8 +181,8 @@ def test_a_scan_after_an_outage_in_a_turn_is_predicted_from_the_robots_own_estim
         assert not m.predict_from(back, last_seen, local.poses[last_seen - start], np.eye(4))  # not newer
         assert not m.predict_from(back, back - m.max_gap, local.poses[-1], np.eye(4))  # too old
         np.testing.assert_array_equal(m.odometry.last_pose, pose_before)
-        if use_prior:
-            assert m.predict_from(back, back, local.poses[-1], local.odometry.last_delta)
+        if use_prior:  # (contested by the mapper's own guess, as the edge does a scan's prior)
+            assert m.predict_from(back, back, local.poses[-1], local.odometry.last_delta, contest=True)
         errors = [error(m.register(i, voxel_downsample(raw[i].points, 0.1)).pose, i)
                   for i in range(back, back + 3)]
         assert not m.predict_from(back + 3, back + 2, local.poses[-1], np.eye(4))  # no gap: ignored
@@ -191,6 +191,40 @@ def test_a_scan_after_an_outage_in_a_turn_is_predicted_from_the_robots_own_estim
     assert min(stretched) > 0.5, stretched  # the constant-velocity guess lost the robot
     assert max(predicted) < 0.25, predicted
     assert m.seqs[-3:] == [back, back + 1, back + 2]  # the trajectory holds the registered scans
+
+
+@pytest.mark.parametrize(("yaw", "shift", "winner"), [(15.0, (2.0, 2.2), "kept"), (40.0, (4.0, 3.0), "own")])
+def test_a_robots_estimate_metres_off_costs_the_mapper_nothing(yaw: float, shift: tuple[float, float],
+                                                               winner: str) -> None:
+    """A scan's prior is the robot's own odometry, which can go wrong (a gap in a turn): here 3 m
+    and 15 degrees off on a straight stretch, and 5 m and 40 degrees. Contested (``contest``, what
+    the edge does with a scan's prior) the mapper keeps the scans after it on the trajectory:
+    from 3 m off ICP finds the scan's pose, and the motion on is the robot's per scan, not the
+    correction of its pose; from 5 m off ICP cannot, and the mapper's own guess wins. Taken as
+    before, the first left the motion model metres a scan (2.9, 6.0, 9.0 m off in the next three
+    scans), the second converged 5 m off and stayed there."""
+    start, last_seen, back = 40, 60, 64
+    raw = {i: SRC.read(i) for i in range(start, back + 4)}
+
+    def error(pose: np.ndarray, i: int) -> float:  # both frames start at scan ``start``
+        truth = np.linalg.inv(raw[start].gt_pose) @ raw[i].gt_pose
+        return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3]))
+
+    wrong = np.linalg.inv(raw[start].gt_pose) @ raw[back].gt_pose @ _yaw(np.radians(yaw))
+    wrong[:2, 3] += shift
+    runs = []
+    for contest in (True, False):
+        m = RobotMapper(voxel_size=0.4, max_range=SRC.max_range)
+        for i in range(start, last_seen + 1):
+            m.register(i, voxel_downsample(raw[i].points, 0.1))
+        assert m.predict_from(back, back, wrong, np.eye(4), contest=contest)
+        regs = [m.register(i, voxel_downsample(raw[i].points, 0.1)) for i in range(back, back + 4)]
+        runs.append([error(r.pose, i) for r, i in zip(regs, range(back, back + 4), strict=True)])
+        if contest:
+            assert regs[0].gap_motion == winner
+    contested, taken = runs
+    assert max(contested) < 0.25, contested
+    assert max(taken) > 2.0, taken
 
 
 def test_a_mapper_registers_the_robots_backfill_instead_of_jumping_the_outage() -> None:
