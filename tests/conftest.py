@@ -50,7 +50,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     namespaces, assert on timing and mostly wait. The core and daemon tests are handed out one at
     a time to whichever worker is free, so they run beside them. (xdist's own `--dist loadgroup`
     renames node ids to group them, which pytest 9.2 no longer lets it do.)"""
-    if config.getvalue("dist") != "load":
+    if config.getoption("dist") != "load":
         return None
     from xdist.scheduler import LoadScopeScheduling
 

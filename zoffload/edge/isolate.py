@@ -25,14 +25,14 @@ a robot sends the scan down a pipe and waits for the registration with the GIL r
   ``call_timeout`` (counted, ``mapper_slow_calls``), one that did not (stopped, deadlocked) is lost,
   and so is a registration that has used ``register_timeout`` seconds of CPU (a busy host stretches
   a call's wall time, not its CPU time: that one is running away, an endless loop; it is lost at the
-  first timeout after, not at ``call_timeout``). A request the process does not read from for 2 s
-  (stopped, its socket's buffer full) loses it too. The robots it hosted lose their maps: their next
-  call raises ``MapperLost``, and the service counts it (``mapper_lost``) and detaches an attached
-  robot, which attaches again with its checkpoint (edge/mapping.py). Until then the robots in that
-  process wait, as does a map query or an eviction's export that asks it. A process found dead when
-  a new robot's mapper is made there is started again and asked once more (nothing was lost). Errors
-  inside a call (a scan with no point in range, a checkpoint that does not fit its grid) come back
-  as the exception they were.
+  first timeout after it has used that much, not at ``call_timeout``). A request the process does
+  not read from for 2 s (stopped, its socket's buffer full) loses it too. The robots it hosted lose
+  their maps: their next call raises ``MapperLost``, and the service counts it (``mapper_lost``) and
+  detaches an attached robot, which attaches again with its checkpoint (edge/mapping.py). Until then
+  the robots in that process wait, as does a map query or an eviction's export that asks it. A
+  process found dead when a new robot's mapper is made there is started again and asked once more
+  (nothing was lost). Errors inside a call (a scan with no point in range, a checkpoint that does
+  not fit its grid) come back as the exception they were.
 * **Bounds.** The processes are fixed; a request carries one scan or one attach's backfill,
   which the codec's limits bound, and a reply one scan's registration or one map.
 

@@ -204,7 +204,7 @@ def _hand_over(mapper: Any, robot: dict[int, np.ndarray], local: set[int], last:
     delta = motion_per_scan(np.array(span), np.array([robot[s] for s in span]))
     if delta is None:
         return False
-    return bool(mapper.predict_from(seq, q, as_rigid(frame @ robot[q]), delta))
+    return bool(mapper.predict_from(seq, q, as_rigid(frame @ robot[q]), delta, contest=True))  # as the edge
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -237,10 +237,9 @@ class RobotMapper:
         self.registered = 0  # scans registered here (the trajectory also holds the robot's poses)
         self.after_gap = 0  # of them, scans after a gap
         self.guessed = 0  # of those, registered from more than one guess (_register_after_gap)
-        # (seq, pose, motion per scan, last seq) of this mapper's own model before ``predict_from``
-        # took the robot's estimate for scan seq (a guess that estimate must beat), and the robot's
-        # motion per scan
-        self._own: tuple[int, np.ndarray, np.ndarray, int, np.ndarray] | None = None
+        # A robot's estimate for a scan, contested (``predict_from``): (seq, prior_seq, pose, motion
+        # per scan), taken by that scan's ``register``
+        self._prior: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self.turned = 0  # of those, registered from a turned guess
         self.backfilled = 0  # scans registered from an attach's backfill (continue_from)
         self.backfilled_seqs: deque[int] = deque(maxlen=BACKFILL_SEQS_KEPT)  # which, the newest
@@ -256,7 +255,26 @@ class RobotMapper:
                  map_points: np.ndarray | None = None) -> Registration:
         """Register one scan; ``times`` (per point, seconds, any offset) deskew it when the
         mapper was made with ``deskew`` (see ``deskew_times``); ``map_points`` (the scan's frame,
-        no per-point times): what the global map grows by instead of ``points``."""
+        no per-point times): what the global map grows by instead of ``points``. A robot's
+        estimate ``predict_from`` took, contested, for this scan is applied here, and undone if
+        the registration fails (another scan's is dropped)."""
+        prior, self._prior = self._prior, None
+        if prior is None or prior[0] != int(seq):
+            return self._register(seq, points, times, map_points)
+        odo = self.odometry
+        own = (odo.last_pose.copy(), odo.last_delta.copy(), self.last_seq)
+        self._take(*prior[1:])
+        try:
+            return self._register(seq, points, times, map_points, (*own, prior[3]))
+        except BaseException:
+            odo.last_pose, odo.last_delta, self.last_seq = own
+            raise
+
+    def _register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None,
+                  map_points: np.ndarray | None = None,
+                  own: tuple[np.ndarray, np.ndarray, int | None, np.ndarray] | None = None) -> Registration:
+        """``register``; ``own``: this mapper's pose, motion per scan and last seq before a
+        contested estimate of the robot's was taken for this scan, and the robot's motion."""
         t0 = time.perf_counter()
         frame = np.asarray(points, dtype=np.float64)
         stamps = deskew_times(times, len(frame)) if self.deskew else np.empty(0)
@@ -264,18 +282,18 @@ class RobotMapper:
         # constant-velocity model over the gap, and bring it back to one period afterwards.
         gap = int(seq) - self.last_seq if self.last_seq is not None else 1
         stretch = 1 < gap <= self.max_gap
-        own, self._own = self._own, None
+        contested = own is not None
         own_guess = self._own_guess(int(seq), own)
         previous = self.odometry.last_pose.copy()
-        if (stretch or own_guess is not None) and len(stamps):
+        if (stretch or contested) and len(stamps):
             # Deskew with one period of motion (the sweep's), not the stretched prediction
             frame = self.odometry.preprocessor.preprocess(frame, stamps, self.odometry.last_delta)
             stamps = np.empty(0)
-        after_gap = (stretch or own_guess is not None) and not self.odometry.local_map.empty()
+        after_gap = (stretch or contested) and not self.odometry.local_map.empty()
         self.after_gap += after_gap
         gap_motion = ""
         if after_gap:
-            guesses, spare = self._gap_guesses(gap, frame, own_guess)
+            guesses, spare = self._gap_guesses(gap, frame, own_guess, contested)
             keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses, spare)
         else:
             if stretch:
@@ -288,19 +306,20 @@ class RobotMapper:
                 self.odometry.last_delta = as_rigid(se3_power(self.odometry.last_delta, 1.0 / gap))
         icp_time = time.perf_counter() - t0
         pose = self.odometry.last_pose.copy()
-        if own_guess is not None and own is not None:
+        if own is not None:
             # The motion on from here: not from the pose one period before the robot's estimate
             # (where its pose was off, the registration's correction of it would become a
-            # velocity of metres a scan) but the robot's own motion per scan, or, when this
-            # mapper's guess won, the motion from its own last scan
-            _, own_pose, _, before, robot_delta = own
-            if gap_motion == "own":
-                previous, gap = own_pose, int(seq) - before
-                self.odometry.last_delta = as_rigid(se3_power(np.linalg.inv(previous) @ pose, 1.0 / gap))
-                log.warning("scan %d: the robot's estimate of its pose lost to this mapper's own guess", seq)
-            else:
+            # velocity of metres a scan) but the robot's own motion per scan where its estimate
+            # won, else the motion from this mapper's own last scan (within ``max_gap``)
+            own_pose, _, before, robot_delta = own
+            if gap_motion in ("prior", ""):
                 previous, gap = pose @ np.linalg.inv(robot_delta), 1
                 self.odometry.last_delta = robot_delta
+            elif before is not None and 0 < int(seq) - before <= self.max_gap:
+                previous, gap = own_pose, int(seq) - before
+                self.odometry.last_delta = as_rigid(se3_power(np.linalg.inv(previous) @ pose, 1.0 / gap))
+            if gap_motion == "own":  # (counted by the edge: gap_own)
+                log.info("scan %d: the robot's estimate of its pose lost to this mapper's own guess", seq)
         if 1 <= gap <= self.max_gap and self.last_seq is not None:  # the yaw per period since the last
             d = np.linalg.inv(previous) @ pose
             yaw = abs(float(np.arctan2(d[1, 0], d[0, 0]))) / gap
@@ -322,17 +341,26 @@ class RobotMapper:
             gap_motion=gap_motion,
         )
 
-    def _own_guess(self, seq: int, own: tuple[int, np.ndarray, np.ndarray, int, np.ndarray] | None
+    def _own_guess(self, seq: int, own: tuple[np.ndarray, np.ndarray, int | None, np.ndarray] | None
                    ) -> tuple[str, np.ndarray] | None:
-        """This mapper's own constant-velocity guess for ``seq`` when ``predict_from`` replaced it
-        with the robot's estimate (``own``, kept by it), within ``max_gap`` of its last scan."""
-        if own is None or own[0] != seq or not 0 < seq - own[3] <= self.max_gap:
+        """This mapper's own constant-velocity guess for ``seq`` when the robot's estimate was
+        taken for it (``own``: what it replaced), within ``max_gap`` of its last scan."""
+        if own is None:
             return None
-        _, pose, delta, last, _ = own
+        pose, delta, last, _ = own
+        if last is None or not 0 < seq - last <= self.max_gap:
+            return None
         return "own", pose @ as_rigid(se3_power(delta, seq - last))
 
-    def _gap_guesses(self, gap: int, frame: np.ndarray, own: tuple[str, np.ndarray] | None = None
-                     ) -> tuple[Guesses, Guesses]:
+    def _take(self, prior_seq: int, pose: np.ndarray, delta: np.ndarray) -> None:
+        """Predict the next scans from the robot's estimate: the pose one period before it, so
+        that ``register`` stretches the motion over (seq - prior_seq + 1) periods from there."""
+        self.odometry.last_pose = as_rigid(np.asarray(pose, np.float64) @ np.linalg.inv(delta))
+        self.odometry.last_delta = delta
+        self.last_seq = int(prior_seq) - 1
+
+    def _gap_guesses(self, gap: int, frame: np.ndarray, own: tuple[str, np.ndarray] | None = None,
+                     prior: bool = False) -> tuple[Guesses, Guesses]:
         """The initial guesses for a scan ``gap`` periods after the last one, in two lists: the
         first of ``gap_motions`` and each other that moves the scan's points farther from where
         the first puts them than KISS-ICP's correspondence distance (3 sigma), tried in turn; and
@@ -351,8 +379,8 @@ class RobotMapper:
         not always reached: after a few gaps sigma grows (1.6 m: a reach of 4.8 m), and at a
         turn's onset three periods after the last scan ICP settled 20 degrees off from a kept
         guess 2.9 m from the right one; those are the spare guesses.
-        ``own``: after ``predict_from`` took the robot's estimate (the first guess is then the
-        robot's), this mapper's own guess, one more of the others: the robot's odometry can be
+        ``prior``: the first guess is the robot's estimate (``predict_from``, contested; named
+        "prior"), and ``own`` this mapper's own guess, one more of the others: the robot's odometry can be
         wrong (a gap in a turn), and an edge that took its estimate as it was jumped 3 m at the
         scan that carried it (the simulator's ``wifi-locations``, scan 358 of a run on 2026-12-07:
         0.06 m off before it, 5.2 m at the run's end)."""
@@ -360,6 +388,8 @@ class RobotMapper:
         sigma = odo.adaptive_threshold.get_threshold()
         motions = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
                    for name, factor in self.gap_motions] + ([own] if own is not None else [])
+        if prior:
+            motions[0] = ("prior", motions[0][1])
         first = motions[0][1]
         reach = 3 * sigma
         ranges = np.linalg.norm(frame[:, :3], axis=1)
@@ -448,7 +478,7 @@ class RobotMapper:
         its local poses; with them the first can be predicted after a gap the local poses (those
         after the robot's checkpoint) do not cover."""
         seeded = False
-        self._own = None
+        self._prior = None
         if checkpoint is not None:  # the turn rate the last mapper learnt (version 8; 0: not said)
             self.turn_rate = max(self.turn_rate, min(float(checkpoint.turn_rate), TURN_RATE_MAX))
         carried = self._backfill(backfill, local_seqs, local_poses, backfill_poses) if backfill else None
@@ -593,13 +623,10 @@ class RobotMapper:
         if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
             return False
         delta = as_rigid(np.asarray(delta, np.float64))
-        self._own = (int(seq), self.odometry.last_pose.copy(), self.odometry.last_delta.copy(),
-                     last, delta) if contest else None
-        # The pose one period before the estimate, so that register() stretches the motion
-        # over (seq - prior_seq + 1) periods from there
-        self.odometry.last_pose = as_rigid(np.asarray(pose, np.float64) @ np.linalg.inv(delta))
-        self.odometry.last_delta = delta
-        self.last_seq = int(prior_seq) - 1
+        if contest:  # taken by the scan's register (not if it never comes, or fails)
+            self._prior = (int(seq), int(prior_seq), np.asarray(pose, np.float64), delta)
+        else:
+            self._take(prior_seq, pose, delta)
         return True
 
     @property

@@ -147,18 +147,19 @@ def big_scans(count: int, dense: int) -> list[np.ndarray]:
 
 
 @contextlib.contextmanager
-def starved(pid: int, running: float = 0.2, cycle: float = 0.1) -> Iterator[None]:
+def starved(pid: int, running: float = 0.1, cycle: float = 0.1) -> Iterator[None]:
     """A stand-in for a host too busy to give the process more than ``running`` of a core: it is
     stopped and continued every ``cycle`` seconds (a fake: real contention would take the cores
     from the tests running beside this one)."""
     done = threading.Event()
 
     def duty() -> None:
-        while not done.is_set():
-            os.kill(pid, signal.SIGSTOP)
-            time.sleep(cycle * (1 - running))
-            os.kill(pid, signal.SIGCONT)
-            time.sleep(cycle * running)
+        with contextlib.suppress(ProcessLookupError):  # (it died: the test says so)
+            while not done.is_set():
+                os.kill(pid, signal.SIGSTOP)
+                time.sleep(cycle * (1 - running))
+                os.kill(pid, signal.SIGCONT)
+                time.sleep(cycle * running)
 
     t = threading.Thread(target=duty, daemon=True)
     t.start()
@@ -167,7 +168,8 @@ def starved(pid: int, running: float = 0.2, cycle: float = 0.1) -> Iterator[None
     finally:
         done.set()
         t.join()
-        os.kill(pid, signal.SIGCONT)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
 
 
 def test_a_busy_process_is_waited_for_past_the_register_timeout() -> None:
@@ -178,7 +180,7 @@ def test_a_busy_process_is_waited_for_past_the_register_timeout() -> None:
     try:
         m = p(header())
         assert m.pid is not None
-        with starved(m.pid):  # a fifth of a core: ~0.3 s of CPU a scan (640k points) takes ~1.5 s
+        with starved(m.pid):  # a tenth of a core: ~0.3 s of CPU a scan (640k points) takes ~3 s
             for i, points in enumerate(big_scans(2, 40)):
                 assert m.register(i, points).map_points > 0
         st = p.status()
@@ -189,13 +191,13 @@ def test_a_busy_process_is_waited_for_past_the_register_timeout() -> None:
 
 def test_a_registration_that_runs_away_with_the_cpu_is_lost_at_its_timeout() -> None:
     """A registration still working at ``register_timeout`` that has used that much CPU is not
-    slowed by a busy host but running away (here: 1.6M points, ~0.6 s of CPU, against a 0.1 s
+    slowed by a busy host but running away (here: 1.6M points, ~0.6 s of CPU, against a 0.3 s
     timeout): the process is given up then, not at ``call_timeout``, and started again."""
-    p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=0.1)
+    p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=0.3)
     try:
         m = p(header())
         t0 = time.monotonic()
-        with pytest.raises(MapperLost, match=r"s of CPU used \(its budget 0.1 s\)"):
+        with pytest.raises(MapperLost, match=r"s of CPU used \(its budget 0.3 s\)"):
             m.register(0, big_scans(1, 100)[0])
         assert time.monotonic() - t0 < 10
         st = p.status()
