@@ -103,8 +103,7 @@ class MapperSettings(_Strict):
     )
     register_timeout: float = Field(
         default=5.0, gt=0,
-        description="s a mapper process may take to register a scan (unless busy on the CPU, for up to "
-                    "call_timeout and as many s of CPU) until killed",
+        description="s (and s of CPU) a mapper process may take to register a scan (busy: call_timeout)",
     )
     call_timeout: float = Field(
         default=30.0, gt=0,
