@@ -76,6 +76,9 @@ TURN_MIN = np.radians(1.0)  # a turned guess closer to the first than this is no
 # The fastest yaw per period a registration may teach: beyond it a pair of poses is a wrong
 # registration, not a turn
 TURN_RATE_MAX = np.radians(30.0)
+# The farthest a robot's estimate may say it moves in one scan period (``predict_from``, from the
+# network): 30 m, 300 m/s at 10 Hz; an estimate beyond it or ``TURN_RATE_MAX`` is not taken
+STEP_MAX = 30.0
 # ICP iterations for the other guesses (KISS-ICP's own limit is 500): from a guess that is wrong
 # ICP wanders for hundreds of iterations, and the winner is refined by the full registration
 GAP_PROBE_ITERATIONS = 30
@@ -618,11 +621,15 @@ class RobotMapper:
         following scan (no gap), an estimate no newer than this mapper's last scan, or one older
         than ``max_gap`` scans is ignored. Returns whether it was taken; the next ``register``
         of ``seq`` predicts ``pose @ delta^(seq - prior_seq)``, and with ``contest`` (a scan's
-        ``prior``, from the network) tries this mapper's own guess too (``_gap_guesses``)."""
+        ``prior``, from the network) tries this mapper's own guess too (``_gap_guesses``); such
+        an estimate whose motion per scan passes ``STEP_MAX`` or ``TURN_RATE_MAX`` is not taken."""
         last = self.last_seq
         if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
             return False
         delta = as_rigid(np.asarray(delta, np.float64))
+        if contest and (float(np.linalg.norm(delta[:3, 3])) > STEP_MAX
+                        or abs(float(np.arctan2(delta[1, 0], delta[0, 0]))) > TURN_RATE_MAX):
+            return False  # no robot moves so (a wrong or hostile estimate): not taken
         if contest:  # taken by the scan's register (not if it never comes, or fails)
             self._prior = (int(seq), int(prior_seq), np.asarray(pose, np.float64), delta)
         else:

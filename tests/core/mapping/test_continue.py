@@ -227,6 +227,22 @@ def test_a_robots_estimate_metres_off_costs_the_mapper_nothing(yaw: float, shift
     assert max(taken) > 2.0, taken
 
 
+def test_a_robots_estimate_of_an_impossible_motion_is_not_taken() -> None:
+    """A scan's prior comes from the network: a motion per scan no robot has (100 m, or a turn of
+    90 degrees a period) is refused, and the mapper's state is left as it was."""
+    m = RobotMapper(voxel_size=0.4, max_range=SRC.max_range)
+    for i in range(40, 50):
+        m.register(i, voxel_downsample(SRC.read(i).points, 0.1))
+    before = (m.odometry.last_pose.copy(), m.odometry.last_delta.copy(), m.last_seq)
+    far, turned = np.eye(4), _yaw(np.radians(90.0))
+    far[0, 3] = 100.0
+    for delta in (far, turned):
+        assert not m.predict_from(54, 54, m.odometry.last_pose, delta, contest=True)
+    np.testing.assert_array_equal(m.odometry.last_pose, before[0])
+    assert m.last_seq == before[2] and m._prior is None
+    assert m.predict_from(54, 54, m.odometry.last_pose, np.eye(4), contest=True)  # a stop: taken
+
+
 def test_a_mapper_registers_the_robots_backfill_instead_of_jumping_the_outage() -> None:
     """The robot mapped a 45-scan outage itself (coarse local odometry) and hands the scans over
     at its odometry's grid with the attach (``backfill``, codec version 9). The edge that mapped it
