@@ -48,6 +48,12 @@ def frame(robot: str, seq: int, w: int = 8, h: int = 6, **over: Any) -> bytes:
     return wire.encode(wire.Frame(**fields))
 
 
+def put(s: zenoh.Session, key: str, payload: bytes) -> None:
+    """BLOCK: each frame reaches the edge (put's default, DROP, may drop one of a burst on a busy
+    host; CI once waited 10 s for an answer with the tests' two workers busy)."""
+    s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 class Answers:
     def __init__(self, session: zenoh.Session, robot: str) -> None:
         self.items: list[wire.Detections] = []
@@ -77,12 +83,12 @@ def test_frames_are_sized_before_decoding_and_strangers_refused(free_port: int) 
         mine, other = Answers(s, "r1"), Answers(s, "r2")
         ok, buf = cv2.imencode(".jpg", np.zeros((6, 8, 3), np.uint8))
         jpeg = np.frombuffer(buf.tobytes(), np.uint8)
-        s.put(KEYS.frame("r1"), frame("r1", 0))  # fine
+        put(s, KEYS.frame("r1"), frame("r1", 0))  # fine
         wait_for(lambda: len(mine.items) == 1, what="the first answer")
-        s.put(KEYS.frame("r1"), frame("r1", 1, encoding="jpeg", data=jpeg))  # fine
-        s.put(KEYS.frame("r1"), frame("r1", 2, w=200, h=200))  # beyond the pixel cap (and short)
-        s.put(KEYS.frame("r1"), frame("r1", 3, w=16, h=12, encoding="jpeg", data=jpeg))  # header says 8x6
-        s.put(KEYS.frame("r2"), frame("r2", 0))  # the edge serves one robot
+        put(s, KEYS.frame("r1"), frame("r1", 1, encoding="jpeg", data=jpeg))  # fine
+        put(s, KEYS.frame("r1"), frame("r1", 2, w=200, h=200))  # beyond the pixel cap (and short)
+        put(s, KEYS.frame("r1"), frame("r1", 3, w=16, h=12, encoding="jpeg", data=jpeg))  # header says 8x6
+        put(s, KEYS.frame("r2"), frame("r2", 0))  # the edge serves one robot
         wait_for(lambda: len(mine.items) == 4 and len(other.items) == 1, what="every answer")
         by_seq = {d.seq: d for d in mine.items}
         assert by_seq[0].status == by_seq[1].status == "ok"
