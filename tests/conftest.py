@@ -45,7 +45,7 @@ def models_dir() -> Path:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """The default run has two workers (pytest-xdist, `-n 2` in pyproject's addopts). The system
+    """On two workers (`pytest -n 2`, pytest-xdist; README, Tests, says why not by default) the system
     tests run one after another on one of them: they start daemons, routers, detectors and network
     namespaces, assert on timing and mostly wait. The core and daemon tests are handed out one at
     a time to whichever worker is free, so they run beside them. (xdist's own `--dist loadgroup`
