@@ -112,6 +112,11 @@ def _yaw(angle: float) -> np.ndarray:
     return m
 
 
+def _yaw_of(pose: np.ndarray) -> float:
+    """How far ``pose`` turns about the z axis, radians (0 to pi)."""
+    return abs(float(np.arctan2(pose[1, 0], pose[0, 0])))
+
+
 def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
     """Packed keys of the ``cell``-sized cubes the points fall in (indices clipped to the packing)."""
     idx = np.clip(np.floor(points / cell), -MAX_INDEX, MAX_INDEX).astype(np.int64) + KEY_OFFSET
@@ -318,14 +323,14 @@ class RobotMapper:
             if gap_motion in ("prior", ""):
                 previous, gap = pose @ np.linalg.inv(robot_delta), 1
                 self.odometry.last_delta = robot_delta
-            elif before is not None and 0 < int(seq) - before <= self.max_gap:
+            elif own_guess is not None and before is not None:  # (its last scan within max_gap)
                 previous, gap = own_pose, int(seq) - before
                 self.odometry.last_delta = as_rigid(se3_power(np.linalg.inv(previous) @ pose, 1.0 / gap))
             if gap_motion == "own":  # (counted by the edge: gap_own)
                 log.info("scan %d: the robot's estimate of its pose lost to this mapper's own guess", seq)
         if 1 <= gap <= self.max_gap and self.last_seq is not None:  # the yaw per period since the last
             d = np.linalg.inv(previous) @ pose
-            yaw = abs(float(np.arctan2(d[1, 0], d[0, 0]))) / gap
+            yaw = _yaw_of(d) / gap
             if yaw <= TURN_RATE_MAX:
                 self.turn_rate = max(self.turn_rate, yaw)
         # Grow the global map with the scan in world coordinates
@@ -628,7 +633,7 @@ class RobotMapper:
             return False
         delta = as_rigid(np.asarray(delta, np.float64))
         if contest and (float(np.linalg.norm(delta[:3, 3])) > STEP_MAX
-                        or abs(float(np.arctan2(delta[1, 0], delta[0, 0]))) > TURN_RATE_MAX):
+                        or _yaw_of(delta) > TURN_RATE_MAX):
             return False  # no robot moves so (a wrong or hostile estimate): not taken
         if contest:  # taken by the scan's register (not if it never comes, or fails)
             self._prior = (int(seq), int(prior_seq), np.asarray(pose, np.float64), delta)
