@@ -61,6 +61,7 @@ from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, edge_token, robot_in_key
 from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.drops import Drops
+from zoffload.runtime.maps import BUSY
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.mapping")
@@ -661,7 +662,7 @@ class MappingService:
             query.reply_err(f"no map for robot {robot!r}".encode())
             return
         if not self._map_reply.acquire(blocking=False):
-            query.reply_err(b"busy: another map reply is being built; ask again")
+            query.reply_err(f"{BUSY} another map reply is being built; ask again".encode())
             return
         try:
             mapper = rs.mapper

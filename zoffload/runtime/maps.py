@@ -12,6 +12,7 @@ whose key or payload names another edge than asked is dropped and counted (``edg
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
 
 import zenoh
@@ -22,6 +23,10 @@ from zoffload.protocol.keys import Keys
 from zoffload.runtime.drops import Drops
 
 log = logging.getLogger("zoffload.maps")
+
+BUSY = "busy:"  # how an edge's error reply begins when it is building another querier's map reply
+BUSY_TRIES = 4
+BUSY_WAIT_S = 0.25
 
 
 def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: float = 5.0) -> list[str]:
@@ -34,17 +39,33 @@ def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: 
 def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str], drops: DropCounter,
             timeout: float = 10.0, before: bool = False) -> wire.MapReply | None:
     """Ask each of ``edges`` for ``robot``'s map, all at once, and with ``before`` the key before
-    per-edge maps too; the first valid reply in that order, None when none came."""
-    asked = [(edge, session.get(keys.map(robot, edge), timeout=timeout)) for edge in edges]
-    if before:
-        asked.append(("", session.get(keys.map_before(robot), timeout=timeout)))
-    for edge, replies in asked:
-        for reply in replies:
-            if reply.ok is None:
-                continue  # that edge has no map of the robot, or is building another's
-            msg = map_from(reply.ok, keys, robot, edge, drops)
-            if msg is not None:
-                return msg
+    per-edge maps too; the first valid reply in that order, None when none came. An edge building
+    another querier's reply answers ``BUSY`` (it builds one at a time): it is asked again, up to
+    ``BUSY_TRIES`` times ``BUSY_WAIT_S`` apart, before its answer counts as none."""
+    busy: list[str] = []
+    for attempt in range(BUSY_TRIES):
+        if attempt:
+            time.sleep(BUSY_WAIT_S)
+        asked = [(edge, session.get(keys.map(robot, edge), timeout=timeout)) for edge in edges]
+        if before and not attempt:
+            asked.append(("", session.get(keys.map_before(robot), timeout=timeout)))
+        busy = []
+        for edge, replies in asked:
+            for reply in replies:
+                if reply.ok is None:  # that edge has no map of the robot, or is building another's
+                    why = reply.err.payload.to_bytes()[:200].decode(errors="replace") if reply.err else "?"
+                    if why.startswith(BUSY):
+                        busy.append(edge)
+                    else:
+                        log.info("no map of %s from edge %r: %s", robot, edge, why)
+                    continue
+                msg = map_from(reply.ok, keys, robot, edge, drops)
+                if msg is not None:
+                    return msg
+        if not busy:
+            return None
+        edges = busy
+    log.warning("no map of %s: edges %s still busy after %d tries", robot, busy, BUSY_TRIES)
     return None
 
 

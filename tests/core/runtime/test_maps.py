@@ -123,3 +123,36 @@ def test_an_older_edge_answers_on_the_key_before_per_edge_maps(sessions: tuple[A
     finally:
         older.undeclare()
         fleet.close()
+
+
+@pytest.mark.parametrize("busy_for", [2, 10])
+def test_an_edge_building_another_reply_is_asked_again(sessions: tuple[Any, Any], busy_for: int) -> None:
+    """An edge builds one map reply at a time and answers another querier meanwhile with ``BUSY``
+    (the live view and the lab's runner may ask at once): it is asked again, a few times, and its
+    map taken when it comes; one busy for longer counts as no map, after ``BUSY_TRIES`` queries."""
+    from zoffload.runtime import maps
+
+    side, querier = sessions
+    asked: list[str] = []
+
+    def on(query: Any) -> None:
+        asked.append(str(query.key_expr))
+        if len(asked) <= busy_for:
+            query.reply_err(f"{maps.BUSY} another map reply is being built; ask again".encode())
+        else:
+            query.reply(KEYS.map("r1", "e1"), reply("r1", "e1", 5))
+
+    queryable = side.declare_queryable(KEYS.all_maps("e1"), on)
+    drops = _Drops()
+    try:
+        wait_for(lambda: any(r.err is not None for r in querier.get(KEYS.map("probe", "e1"), timeout=2)), 10,
+                 "the edge's queryable")
+        asked.clear()
+        got = maps.ask_map(querier, KEYS, "r1", ["e1"], drops, timeout=5)
+        if busy_for < maps.BUSY_TRIES:
+            assert got is not None and got.scans == 5 and len(asked) == busy_for + 1
+        else:
+            assert got is None and len(asked) == maps.BUSY_TRIES
+        assert not drops.counts
+    finally:
+        queryable.undeclare()
