@@ -45,20 +45,24 @@ def models_dir() -> Path:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """On two workers (`pytest -n 2`, pytest-xdist; README, Tests, says why not by default) the system
-    tests run one after another on one of them: they start daemons, routers, detectors and network
-    namespaces, assert on timing and mostly wait. The core and daemon tests are handed out one at
-    a time to whichever worker is free, so they run beside them. (xdist's own `--dist loadgroup`
-    renames node ids to group them, which pytest 9.2 no longer lets it do.)"""
+    """The default run has two workers (pytest-xdist, `-n 2` in pyproject's addopts), in two
+    phases. First the core and daemon tests, handed out one at a time to whichever worker is free;
+    then the system tests, one after another on one worker, alone: they start daemons, routers,
+    detectors and network namespaces, assert on timing and mostly wait, and beside other tests on a
+    two-core host some failed (README, Tests). (xdist orders its scopes largest first, which
+    started the system tests at once beside the rest; its own `--dist loadgroup` renames node ids
+    to group them, which pytest 9.2 no longer lets it do.)"""
     if config.getoption("dist") != "load":
         return None
     from xdist.scheduler import LoadScopeScheduling
 
-    class SystemTestsInTurn(LoadScopeScheduling):
+    config.option.loadscopereorder = False  # collection order: tests/system comes last
+
+    class SystemTestsLast(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return "tests/system" if nodeid.startswith("tests/system/") else nodeid
 
-    return SystemTestsInTurn(config, log)
+    return SystemTestsLast(config, log)
 
 
 _EXIT = {"status": 0}
