@@ -45,7 +45,7 @@ def models_dir() -> Path:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """The default run has two workers (pytest-xdist, `-n 2` in pyproject's addopts), in two
+    """On two workers (`pytest -n 2`, pytest-xdist; README, Tests, says why not by default), in two
     phases. First the core and daemon tests, handed out one at a time to whichever worker is free;
     then the system tests, one after another on one worker, alone: they start daemons, routers,
     detectors and network namespaces, assert on timing and mostly wait, and beside other tests on a
