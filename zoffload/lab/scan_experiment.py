@@ -184,6 +184,10 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int 
         "scans_produced": (balance or {}).get("produced", len(recs)),
         "scans_sent": len(sent) if exp.policy != "local" else len(recs),
         "scans_received": len(received) if exp.policy != "local" else len(recs),
+        # of those, registered by the edge (acked with a pose); the rest it dropped (late, full
+        # queue, overloaded) or answered with an error
+        "scans_registered": sum(1 for r in received if r.get("status") == "acked")
+        if exp.policy != "local" else len(recs),
         # registered by the robot's own odometry while the link was out (``--attach``)
         "scans_local": sum(1 for r in recs if r.get("status") == "local") if exp.policy != "local" else 0,
         "T_mean": float(t.mean()) if len(t) else None,
@@ -369,7 +373,8 @@ def summary_line(row: dict[str, Any]) -> str:
     err = row.get("trajectory_error") or {}
     return (f"{row['policy']:>12} on {row['trace']}: S {f(row['S_kB'], '.0f')} kB, points "
             f"{f(row['points_before'], '.0f')} -> {f(row['points_after'], '.0f')}, received "
-            f"{row['scans_received']}/{row['scans_produced']} (sent {row['scans_sent']}), "
+            f"{row['scans_received']}/{row['scans_produced']} (sent {row['scans_sent']}; registered "
+            f"{row.get('scans_registered', '-')}), "
             f"T {f(row['T_mean'], '.3f')} s "
             f"({f(100 * row['T_le_0.11'] if row['T_le_0.11'] is not None else None, '.0f')} % <= 0.11), "
             f"map {f(row['map_points'], ',')} pts, ATE {f(err.get('ate_rmse'), '.3f')} m, "

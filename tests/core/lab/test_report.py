@@ -45,6 +45,17 @@ def test_table_has_our_rows_the_papers_rows_and_map_ratio_to_local() -> None:
     assert [c.strip() for c in line.split("|")[8:10]] == ["–", ""]
 
 
+def test_the_scans_the_edge_registered_stand_beside_those_it_received() -> None:
+    """Received counts the scans that reached the edge; the ones it dropped late or overloaded are
+    among them, so the registered ones are shown beside (older results without the figure: not)."""
+    md = table_markdown([row("local", 200_000, 100), dict(row("rate", 80_000), scans_registered=61),
+                         row("raw", 80_000)])
+    lines = md.splitlines()
+    assert "received (registered)" in lines[0]
+    assert "| 90 (61) / 100 (95) |" in lines[3] and "| 90 / 100 (95) |" in lines[4]
+    assert "| 100 / 100 (95) |" in lines[2]  # local: no edge
+
+
 def test_runs_of_one_experiment_make_one_row_with_mean_and_sd(tmp_path: Path) -> None:
     from zoffload.lab.eval.report import aggregate, expand_runs
 

@@ -64,6 +64,7 @@ def _fmt(x: Any, spec: str, none: str = "–") -> str:
 RUN_NAME = re.compile(r"^run\d+$")
 # Figures averaged over the runs of a row (dotted: nested in results.json)
 AVERAGED = ("S_kB", "points_before", "points_after", "scans_produced", "scans_sent", "scans_received",
+            "scans_registered",
             "T_mean", "T_le_0.11", "map_points", "trajectory_error.ate_rmse", "robot_cpu_ms",
             "robot_process_cpu_ms", "scans_skipped", "skipped_share", "delivered_or_skipped", "on_time_slot",
             "on_time_tiny",
@@ -190,7 +191,8 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
     # a run is set against the local run of the same scans: same source and as many of them
     local = {_local_key(r): r for r in rows if r["policy"] == "local"}
     lines = [
-        "| run | trace | S (kB/scan) | points before → after | received / sensor scans (sent) | T̄ (s) "
+        "| run | trace | S (kB/scan) | points before → after | received (registered) / sensor scans (sent) "
+        "| T̄ (s) "
         "| T ≤ 0.11 s | map points | vs local | trajectory error (m) | robot CPU (ms/scan) | skipped "
         "| on time for slot | delivered or skipped | + kept local in outages | + backfilled "
         "| trajectory vs local, same scans |",
@@ -209,6 +211,8 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
         name = (r["policy"] + (f" ({r['n']} runs)" if r["n"] > 1 else "")
                 + (f" ({short} cut short)" if short else ""))
         received = (_cell(r, "scans_received", ".0f") if r["n"] > 1 else str(r["scans_received"]))
+        if _get(r, "scans_registered") is not None and r["policy"] != "local":  # (older results: not kept)
+            received += f" ({_cell(r, 'scans_registered', '.0f')})"
         # 1-byte scans every period on the run's emulated link: what its jitter leaves (lab/link/ceiling.py)
         tiny = (f" (1-byte {_cell(r, 'on_time_tiny', '.0f', 100, ' %')})"
                 if _get(r, "on_time_tiny") is not None else "")
