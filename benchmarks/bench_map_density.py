@@ -83,13 +83,14 @@ def kitti() -> None:
     print("| points per voxel | CPU ms, first fifth (median) | last fifth | mean | mean vs 20 "
           "| difference from 20, mean m | max m |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-    base_cpu, base_poses = None, None
+    base: tuple[float, dict[int, np.ndarray]] | None = None
     for density in DENSITIES:
-        cpu, _, poses = register_all(scans, voxel, 100.0, density)
-        if base_poses is None:
-            base_cpu, base_poses = cpu.mean(), poses
-        assert base_cpu is not None
-        print(row(str(density), cpu, position_error(poses, base_poses), base_cpu), flush=True)
+        cpu, seqs, poses = register_all(scans, voxel, 100.0, density)
+        if base is None:
+            base = cpu.mean(), dict(zip(seqs.tolist(), poses, strict=True))
+        both = [i for i, s in enumerate(seqs.tolist()) if s in base[1]]  # the scans both registered
+        err = position_error(poses[both], np.array([base[1][int(seqs[i])] for i in both]))
+        print(row(str(density), cpu, err, base[0]), flush=True)
 
 
 def main() -> None:

@@ -47,7 +47,8 @@ def models_dir() -> Path:
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """On two workers (`pytest -n 2`, pytest-xdist; README, Tests, says why not by default), in two
     phases. First the core and daemon tests, handed out one at a time to whichever worker is free;
-    then the system tests, one after another on one worker, alone: they start daemons, routers,
+    then the system tests, one after another on one worker, after the others (overlapping at most
+    the last two or three daemon tests still on the other worker): they start daemons, routers,
     detectors and network namespaces, assert on timing and mostly wait, and beside other tests on a
     two-core host some failed (README, Tests). (xdist orders its scopes largest first, which
     started the system tests at once beside the rest; its own `--dist loadgroup` renames node ids

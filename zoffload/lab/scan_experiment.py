@@ -110,6 +110,13 @@ def _reference(source: ScanSource, recs: list[dict[str, Any]], replay: str, is_s
     return seqs, poses, "KISS-ICP run locally on every raw scan (no ground truth for real data)"
 
 
+def edge_registered(recs: list[dict[str, Any]]) -> int:
+    """Scans the edge registered: acked, and those whose ack came after the robot gave up waiting
+    (``late``, the edge's answer ``ok``)."""
+    return sum(1 for r in recs if r.get("status") == "acked"
+               or (r.get("status") == "late" and r.get("late_status") == "ok"))
+
+
 DELIBERATE = ("source:pace", "source:skip", "source:stall")  # the robot chose not to send them
 SLOT_SLACK = 1.1  # on time for its slot: T <= 1.1 x the period the robot intended
 
@@ -184,10 +191,9 @@ def _table_row(exp: ScanExperiment, recs: list[dict[str, Any]], map_points: int 
         "scans_produced": (balance or {}).get("produced", len(recs)),
         "scans_sent": len(sent) if exp.policy != "local" else len(recs),
         "scans_received": len(received) if exp.policy != "local" else len(recs),
-        # of those, registered by the edge (acked with a pose); the rest it dropped (late, full
-        # queue, overloaded) or answered with an error
-        "scans_registered": sum(1 for r in received if r.get("status") == "acked")
-        if exp.policy != "local" else len(recs),
+        # of those, registered by the edge; the rest it dropped (late, full queue, overloaded) or
+        # answered with an error
+        "scans_registered": edge_registered(received) if exp.policy != "local" else len(recs),
         # registered by the robot's own odometry while the link was out (``--attach``)
         "scans_local": sum(1 for r in recs if r.get("status") == "local") if exp.policy != "local" else 0,
         "T_mean": float(t.mean()) if len(t) else None,

@@ -40,22 +40,22 @@ def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str]
             timeout: float = 10.0, before: bool = False) -> wire.MapReply | None:
     """Ask each of ``edges`` for ``robot``'s map, all at once, and with ``before`` the key before
     per-edge maps too; the first valid reply in that order, None when none came. An edge building
-    another querier's reply answers ``BUSY`` (it builds one at a time): it is asked again, up to
-    ``BUSY_TRIES`` times ``BUSY_WAIT_S`` apart, before its answer counts as none."""
-    busy: list[str] = []
+    another querier's reply answers ``BUSY`` (it builds one at a time): its key is asked again, up
+    to ``BUSY_TRIES`` times ``BUSY_WAIT_S`` apart, before its answer counts as none."""
+    ask = [(edge, keys.map(robot, edge)) for edge in edges]
+    if before:
+        ask.append(("", keys.map_before(robot)))
     for attempt in range(BUSY_TRIES):
         if attempt:
             time.sleep(BUSY_WAIT_S)
-        asked = [(edge, session.get(keys.map(robot, edge), timeout=timeout)) for edge in edges]
-        if before and not attempt:
-            asked.append(("", session.get(keys.map_before(robot), timeout=timeout)))
-        busy = []
-        for edge, replies in asked:
+        asked = [(edge, key, session.get(key, timeout=timeout)) for edge, key in ask]
+        busy: dict[tuple[str, str], None] = {}  # (edge, key), once each, in order
+        for edge, key, replies in asked:
             for reply in replies:
                 if reply.ok is None:  # that edge has no map of the robot, or is building another's
                     why = reply.err.payload.to_bytes()[:200].decode(errors="replace") if reply.err else "?"
                     if why.startswith(BUSY):
-                        busy.append(edge)
+                        busy[(edge, key)] = None
                     else:
                         log.info("no map of %s from edge %r: %s", robot, edge, why)
                     continue
@@ -64,8 +64,9 @@ def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str]
                     return msg
         if not busy:
             return None
-        edges = busy
-    log.warning("no map of %s: edges %s still busy after %d tries", robot, busy, BUSY_TRIES)
+        ask = list(busy)
+    log.warning("no map of %s: %s still busy after %d tries", robot, [e or "(older edge)" for e, _ in ask],
+                BUSY_TRIES)
     return None
 
 

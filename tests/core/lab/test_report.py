@@ -268,3 +268,22 @@ def test_a_run_from_before_the_streams_gets_them_from_its_trace(tmp_path: Path) 
     assert "(1-byte" in table_markdown([dict(row("rate", 100_000), **old)]).splitlines()[2]
     lost = load_run(run("lost", "/nowhere/no-such-trace.csv"))  # unknown: left out, no error
     assert "on_time_tiny" not in lost
+
+
+def test_a_run_from_before_the_registered_figure_gets_it_from_its_scan_records(tmp_path: Path) -> None:
+    """Registered: acked, or acked after the robot gave up waiting (late, the edge's answer ok);
+    not dropped, nor late and dropped. A run written before the figure is counted from its records,
+    so a row's mean is over all its runs."""
+    import json
+
+    from zoffload.lab.eval.report import load_run
+    from zoffload.lab.scan_experiment import edge_registered
+
+    recs = [{"status": "acked", "late_status": ""}, {"status": "late", "late_status": "ok"},
+            {"status": "late", "late_status": "dropped"}, {"status": "edge_dropped", "late_status": ""},
+            {"status": "acked", "late_status": ""}]
+    assert edge_registered(recs) == 3
+    (tmp_path / "results.json").write_text(json.dumps(row("rate", 100_000)))
+    (tmp_path / "scans.csv").write_text("seq,status,late_status\n" + "".join(
+        f"{i},{r['status']},{r['late_status']}\n" for i, r in enumerate(recs)))
+    assert load_run(tmp_path)["scans_registered"] == 3

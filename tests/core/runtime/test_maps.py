@@ -156,3 +156,34 @@ def test_an_edge_building_another_reply_is_asked_again(sessions: tuple[Any, Any]
         assert not drops.counts
     finally:
         queryable.undeclare()
+
+
+def test_an_older_edge_answering_busy_is_asked_again_on_its_own_key_once_a_round(
+        sessions: tuple[Any, Any]) -> None:
+    """An edge from before per-edge map keys answers on ``map_before``, and busy as well (from the
+    review: its key was rebuilt as an edge's, ``keys.map(robot, "")``, which raised; and a key
+    answered busy twice was asked twice as often each round)."""
+    from zoffload.runtime import maps
+
+    side, querier = sessions
+    asked: list[str] = []
+
+    def on(query: Any) -> None:
+        asked.append(str(query.key_expr))
+        if len(asked) <= 3:
+            for _ in range(2):  # two busy replies to one query
+                query.reply_err(f"{maps.BUSY} another map reply is being built; ask again".encode())
+        else:
+            query.reply(KEYS.map_before("r1"), reply("r1", "", 4))
+
+    older = side.declare_queryable(KEYS.map_before("r1"), on)
+    drops = _Drops()
+    try:
+        wait_for(lambda: any(r.err is not None for r in querier.get(KEYS.map_before("r1"), timeout=2)), 10,
+                 "the older edge's queryable")
+        asked.clear()
+        got = maps.ask_map(querier, KEYS, "r1", [], drops, timeout=5, before=True)
+        assert got is not None and got.edge == "" and got.scans == 4
+        assert asked == [KEYS.map_before("r1")] * 4 and not drops.counts  # one query a round
+    finally:
+        older.undeclare()

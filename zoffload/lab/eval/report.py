@@ -39,6 +39,11 @@ def load_run(folder: Path) -> dict[str, Any]:
         res["scans_kept_local"] = local
         res["delivered_skipped_or_local"] = (res["delivered_or_skipped"]
                                              + local / max(1, int(res.get("scans_produced") or 0)))
+    if "scans_registered" not in res and res.get("policy") != "local" and res["records"]:
+        # a run from before the figure (every run of a row has it, so its mean is over them all)
+        from zoffload.lab.scan_experiment import edge_registered
+
+        res["scans_registered"] = edge_registered(res["records"])
     if "on_time_tiny" not in res and res.get("on_time_slot") is not None and res.get("S_kB"):
         # a run from before the figure: from its trace and its stretch of it (lab/link/ceiling.py)
         from zoffload.lab.link.ceiling import run_streams
