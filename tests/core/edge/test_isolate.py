@@ -193,8 +193,8 @@ def test_a_registration_that_runs_away_with_the_cpu_is_lost_at_its_timeout() -> 
     """A registration still working at ``register_timeout`` that has used that much CPU is not
     slowed by a busy host but running away (here: 1.6M points, ~0.6 s of CPU, against a 0.1 s
     timeout): the process is given up then, not at ``call_timeout``, and started again. (With a
-    0.3 s timeout, CI once saw the scan answered between the first look, 0.2 s of CPU, and the
-    second: the budget is a sixth of the work so that several looks fall within it.)"""
+    0.3 s timeout, CI once saw the scan answered between the first look, under its budget of CPU
+    then, and the second: the budget is a sixth of the work so that several looks fall within it.)"""
     p = MapperPool(MapperRecipe(), 1, call_timeout=60.0, register_timeout=0.1)
     try:
         m = p(header())
