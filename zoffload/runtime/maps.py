@@ -27,6 +27,7 @@ log = logging.getLogger("zoffload.maps")
 BUSY = "busy:"  # how an edge's error reply begins when it is building another querier's map reply
 BUSY_TRIES = 4
 BUSY_WAIT_S = 0.25
+NO_MAP = "no map for robot"  # an edge's error reply when it does not map the robot (": why" when it lost it)
 
 
 def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: float = 5.0) -> list[str]:
@@ -56,6 +57,8 @@ def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str]
                     why = reply.err.payload.to_bytes()[:200].decode(errors="replace") if reply.err else "?"
                     if why.startswith(BUSY):
                         busy[(edge, key)] = None
+                    elif why == f"{NO_MAP} {robot!r}":  # the usual answer of an edge asked by guess
+                        log.debug("no map of %s from edge %r", robot, edge)
                     else:
                         log.info("no map of %s from edge %r: %s", robot, edge, why)
                     continue

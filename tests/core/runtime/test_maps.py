@@ -4,6 +4,7 @@ only from the edge it asked."""
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from collections.abc import Iterator
 from typing import Any
@@ -13,7 +14,7 @@ import pytest
 
 from tests.helpers import KEYS, served, wait_for
 from zoffload.protocol import wire
-from zoffload.runtime.maps import fetch_map, live_edges
+from zoffload.runtime.maps import NO_MAP, fetch_map, live_edges
 
 
 class _Drops:
@@ -49,7 +50,7 @@ class Fleet:
             if robot in robots:
                 query.reply(KEYS.map(robot, edge), robots[robot])
             else:
-                query.reply_err(b"no map")
+                query.reply_err(f"{NO_MAP} {robot!r}".encode())  # as the edge's mapping service
         return on
 
     def wait_routed(self, querier: Any, edges: list[str]) -> None:
@@ -187,3 +188,29 @@ def test_an_older_edge_answering_busy_is_asked_again_on_its_own_key_once_a_round
         assert asked == [KEYS.map_before("r1")] * 4 and not drops.counts  # one query a round
     finally:
         older.undeclare()
+
+
+def test_an_edge_that_does_not_map_the_robot_is_logged_at_debug_and_one_that_lost_it_at_info(
+        sessions: tuple[Any, Any], caplog: pytest.LogCaptureFixture) -> None:
+    """The live view asks every live edge until an ack names the robot's: the usual answer of an
+    edge that does not map it is not worth a line each poll; an edge that lost its map says why."""
+    from zoffload.runtime import maps
+
+    side, querier = sessions
+    fleet = Fleet(side, {"e1": {}})
+
+    def lost(query: Any) -> None:
+        query.reply_err(f"{NO_MAP} 'r1': its mapper was lost".encode())
+
+    held = side.declare_queryable(KEYS.map("r1", "e2"), lost)
+    try:
+        fleet.wait_routed(querier, ["e1"])
+        wait_for(lambda: any(r.err is not None for r in querier.get(KEYS.map("r1", "e2"), timeout=2)), 10,
+                 "e2's queryable")
+        with caplog.at_level(logging.DEBUG, "zoffload.maps"):
+            assert maps.ask_map(querier, KEYS, "r1", ["e1", "e2"], _Drops(), timeout=5) is None
+        by_edge = {r.getMessage().split("edge ")[1][:4]: r.levelno for r in caplog.records}
+        assert by_edge == {"'e1'": logging.DEBUG, "'e2'": logging.INFO}, caplog.text
+    finally:
+        held.undeclare()
+        fleet.close()
