@@ -1,10 +1,12 @@
 """KISS-ICP inside the edge daemon vs KISS-ICP called directly, on the same real scans.
 
 Direct: ``kiss_icp.kiss_icp.KissICP.register_frame`` in a loop over the 50 KITTI-360 scans
-(downsampled at 5 cm as the robot sends them). Edge: the same scans published to a real
-``zoffload-edge`` process one at a time (each after the previous ack) and registered by its
-per-robot mapper; the figure is the registration time the edge reports in each ack, and the
-wall time per scan including transport.
+(downsampled at 5 cm as the robot sends them), given row-major points, and again column-major:
+the layout ``decode_q16d`` returned before 2026-12-07, which KISS-ICP's binding converts point by
+point. Edge: the same scans published to a real ``zoffload-edge`` process one at a time (each
+after the previous ack) and registered by its per-robot mapper, as float32 and coded ``q16d`` (the
+robot's default coding; quantised at a tenth of the voxel); the figures are the registration time
+the edge reports in each ack, and the wall time per scan including transport.
 
 Run: python -m benchmarks.bench_mapper
 """
@@ -24,12 +26,13 @@ from benchmarks.common import header, kitti_scans
 from zoffload.mapping.mapper import mapper_voxel_size
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
+from zoffload.protocol.coding import encode_q16d, quant_step
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import ZenohSettings
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
 
-def direct(scans: list[np.ndarray], voxel: float) -> list[float]:
+def direct(scans: list[np.ndarray], voxel: float, layout: Any = np.ascontiguousarray) -> list[float]:
     from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
 
@@ -38,13 +41,25 @@ def direct(scans: list[np.ndarray], voxel: float) -> list[float]:
     odom = KissICP(cfg)
     times = []
     for pts in scans:
+        frame = layout(pts.astype(np.float64))
         t0 = time.perf_counter()
-        odom.register_frame(pts.astype(np.float64), np.empty(0))
+        odom.register_frame(frame, np.empty(0))
         times.append(time.perf_counter() - t0)
     return times
 
 
-def through_edge(scans: list[np.ndarray]) -> tuple[list[float], list[float], list[float]]:
+def scan_message(seq: int, pts: np.ndarray, coding: str) -> bytes:
+    fields: dict[str, Any] = {"points": pts.astype(np.float32)}
+    if coding == "q16d":
+        step = quant_step(0.05, 0.1)
+        origin, step, blob = encode_q16d(pts, step)
+        fields = {"points": np.empty((0, 3), np.float32), "coding": "q16d", "quant_step": step,
+                  "n_points": len(pts), "origin": origin, "packed": np.frombuffer(blob, np.uint8)}
+    return wire.encode(wire.Scan(robot="bench", seq=seq, send_stamp=time.monotonic(), capture_stamp=0.0,
+                                 voxel=0.05, voxel_max=0.07, max_range=100.0, n_raw=len(pts), **fields))
+
+
+def through_edge(scans: list[np.ndarray], coding: str) -> tuple[list[float], list[float], list[float]]:
     port = free_tcp_port()
     edge = subprocess.Popen([sys.executable, "-m", "zoffload.cli", "edge", "--no-multicast-scouting",
                              "--no-shm", "-l", loopback_endpoint(port), "--log-level", "WARNING"])
@@ -68,9 +83,7 @@ def through_edge(scans: list[np.ndarray]) -> tuple[list[float], list[float], lis
     pub = s.declare_publisher(keys.scan("bench"))
     walls = []
     for seq, pts in enumerate(scans):
-        data = wire.encode(wire.Scan(robot="bench", seq=seq, send_stamp=time.monotonic(),
-                                     capture_stamp=0.0, voxel=0.05, voxel_max=0.07, max_range=100.0,
-                                     n_raw=len(pts), points=pts.astype(np.float32)))
+        data = scan_message(seq, pts, coding)
         got.clear()
         t0 = time.perf_counter()
         pub.put(data)
@@ -87,17 +100,25 @@ def main() -> None:
     header("KISS-ICP: inside zoffload-edge vs called directly (50 KITTI-360 scans at 5 cm)")
     scans = [voxel_downsample(p, 0.05) for p in kitti_scans(50)]
     voxel = mapper_voxel_size(100.0, 0.07)
-    # Direct runs before and after the edge run: this VM's speed drifts by tens of percent
+    # Direct runs before and after the edge runs: this VM's speed drifts by tens of percent
     d = direct(scans, voxel)
-    e_icp, e_proc, e_wall = through_edge(scans)
+    column = direct(scans, voxel, np.asfortranarray)
+    edge = {coding: through_edge(scans, coding) for coding in ("f32", "q16d")}
     d2 = direct(scans, voxel)
     d_ms = statistics.median(d + d2) * 1e3
-    i_ms, p_ms, w_ms = (statistics.median(x) * 1e3 for x in (e_icp, e_proc, e_wall))
-    print(f"direct KissICP.register_frame       : {d_ms:6.1f} ms per scan (median of two runs)")
-    print(f"KISS-ICP inside the edge (icp_time) : {i_ms:6.1f} ms per scan  ratio {i_ms / d_ms:.2f}"
-          "  (target <= 1.10)")
-    print(f"+ global map update (proc_time)     : {p_ms:6.1f} ms per scan  ratio {p_ms / d_ms:.2f}")
-    print(f"edge wall time, send -> ack         : {w_ms:6.1f} ms per scan  ratio {w_ms / d_ms:.2f}")
+    c_ms = statistics.median(column) * 1e3
+    print(f"direct KissICP.register_frame, row-major points    : {d_ms:6.1f} ms per scan "
+          "(median of two runs)")
+    print(f"direct, column-major (q16d's decode before 12-07)  : {c_ms:6.1f} ms per scan  "
+          f"ratio {c_ms / d_ms:.2f}")
+    for coding, (e_icp, e_proc, e_wall) in edge.items():
+        i_ms, p_ms, w_ms = (statistics.median(x) * 1e3 for x in (e_icp, e_proc, e_wall))
+        print(f"{coding}: KISS-ICP inside the edge (icp_time)         : {i_ms:6.1f} ms per scan  ratio "
+              f"{i_ms / d_ms:.2f}  (target <= 1.10)")
+        print(f"{coding}: + decode, global map update (proc_time)     : {p_ms:6.1f} ms per scan  ratio "
+              f"{p_ms / d_ms:.2f}")
+        print(f"{coding}: edge wall time, send -> ack                 : {w_ms:6.1f} ms per scan  ratio "
+              f"{w_ms / d_ms:.2f}")
 
 
 if __name__ == "__main__":

@@ -77,7 +77,7 @@ def seed(odometry: Any, checkpoint: wire.Checkpoint) -> None:
     not decode (the receivers check it when it arrives)."""
     points = checkpoint.cloud()
     if len(points):
-        odometry.local_map.add_points(np.asarray(points, np.float64))
+        odometry.local_map.add_points(np.ascontiguousarray(points, np.float64))
     odometry.last_pose = as_rigid(checkpoint.pose)  # (Sophus aborts on a rotation off by 1e-10)
     odometry.last_delta = as_rigid(checkpoint.delta)
 

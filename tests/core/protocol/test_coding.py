@@ -138,3 +138,14 @@ def test_a_hair_outside_the_box_is_clamped_not_wrapped() -> None:
     pack_q16(pts + 1e-7, np.empty(0, np.int32), np.empty(0), box, 0.01, False, LAYOUT["q16z"], out)
     q = out.view("<u2")
     assert q[1] == 65535  # not 0
+
+
+def test_decoded_points_are_row_major_as_kiss_icp_takes_them_at_full_speed() -> None:
+    """Both codings decode to C-ordered (n, 3) points (and so does a coded scan on the wire):
+    the planes' transpose is column-major, and KISS-ICP's binding converts that point by point,
+    which cost the edge 74 ms of an 83k-point KITTI-360 scan's registration until 2026-12-07."""
+    pts = _scan()
+    for encode, decode in ((encode_q16d, decode_q16d), (encode_q16z, decode_q16z)):
+        origin, step, blob = encode(pts, 0.005)
+        back = decode(blob, len(pts), origin, step)[0]
+        assert back.shape == pts.shape and back.flags["C_CONTIGUOUS"], encode.__name__
