@@ -659,7 +659,9 @@ class MappingService:
         with self._lock:
             rs = self.robots.get(robot) if robot else None
         if rs is None or rs.mapper is None:
-            query.reply_err(f"{NO_MAP} {robot!r}".encode())
+            lost = rs.counters["mapper_lost"] if rs is not None else 0
+            why = f": its mapper was lost ({lost} so far); its next scan starts a new map" if lost else ""
+            query.reply_err(f"{NO_MAP} {robot!r}{why}".encode())
             return
         if not self._map_reply.acquire(blocking=False):
             query.reply_err(f"{BUSY} another map reply is being built; ask again".encode())

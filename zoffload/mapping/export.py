@@ -12,7 +12,8 @@ def write_point_cloud(path: Path, points: np.ndarray) -> Path:
         import open3d as o3d
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise ImportError("map export needs open3d: pip install 'zoffload[edge]'") from exc
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    # row-major float64: open3d's binding converts any other array point by point
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, np.float64)))
     if not o3d.io.write_point_cloud(path, cloud):
         raise OSError(f"open3d could not write {path}")
     return path

@@ -284,7 +284,7 @@ class RobotMapper:
         """``register``; ``own``: this mapper's pose, motion per scan and last seq before a
         contested estimate of the robot's was taken for this scan, and the robot's motion."""
         t0 = time.perf_counter()
-        # row-major: KISS-ICP's binding converts any other layout point by point (60 times slower)
+        # row-major: KISS-ICP's binding converts any other layout point by point (hundreds of times slower)
         frame = np.ascontiguousarray(points, dtype=np.float64)
         stamps = deskew_times(times, len(frame)) if self.deskew else np.empty(0)
         # Scans lost on the way: KISS-ICP predicts one scan period of motion, so stretch its

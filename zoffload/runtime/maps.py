@@ -38,11 +38,13 @@ def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: 
 
 
 def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str], drops: DropCounter,
-            timeout: float = 10.0, before: bool = False) -> wire.MapReply | None:
+            timeout: float = 10.0, before: bool = False, guessed: bool = True) -> wire.MapReply | None:
     """Ask each of ``edges`` for ``robot``'s map, all at once, and with ``before`` the key before
     per-edge maps too; the first valid reply in that order, None when none came. An edge building
     another querier's reply answers ``BUSY`` (it builds one at a time): its key is asked again, up
-    to ``BUSY_TRIES`` times ``BUSY_WAIT_S`` apart, before its answer counts as none."""
+    to ``BUSY_TRIES`` times ``BUSY_WAIT_S`` apart, before its answer counts as none. An edge's
+    plain answer that it does not map the robot is logged at debug when ``guessed`` (the edges
+    were asked in case), at info when the caller knew them to map it; any other error at info."""
     ask = [(edge, keys.map(robot, edge)) for edge in edges]
     if before:
         ask.append(("", keys.map_before(robot)))
@@ -57,7 +59,7 @@ def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str]
                     why = reply.err.payload.to_bytes()[:200].decode(errors="replace") if reply.err else "?"
                     if why.startswith(BUSY):
                         busy[(edge, key)] = None
-                    elif why == f"{NO_MAP} {robot!r}":  # the usual answer of an edge asked by guess
+                    elif guessed and why == f"{NO_MAP} {robot!r}":  # an edge asked in case: as usual
                         log.debug("no map of %s from edge %r", robot, edge)
                     else:
                         log.info("no map of %s from edge %r: %s", robot, edge, why)
@@ -78,7 +80,7 @@ def fetch_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[st
     """``robot``'s map from ``edges`` (those the caller knows map it, in order), else from every
     other live edge, or an older edge on the key before per-edge maps."""
     drops = drops if drops is not None else Drops(log)
-    msg = ask_map(session, keys, robot, edges, drops, timeout) if edges else None
+    msg = ask_map(session, keys, robot, edges, drops, timeout, guessed=False) if edges else None
     if msg is None:
         others = [e for e in live_edges(session, keys, drops, timeout) if e not in edges]
         msg = ask_map(session, keys, robot, others, drops, timeout, before=True)

@@ -23,8 +23,19 @@ from zoffload.edge.recipe import MapperRecipe
 from zoffload.edge.robots import MapperLost, Queued
 from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
+from zoffload.runtime.maps import NO_MAP
 
 pytest.importorskip("kiss_icp")
+
+
+class _MapQuery:
+    """A map query: records the edge's error reply."""
+
+    def __init__(self, key: str) -> None:
+        self.key_expr, self.err = key, ""
+
+    def reply_err(self, data: bytes) -> None:
+        self.err = data.decode()
 
 
 def header(robot: str = "r1") -> wire.Scan:
@@ -286,6 +297,9 @@ def test_the_service_detaches_a_robot_whose_mapper_was_lost_so_it_attaches_again
         # a scan of that epoch queued before the loss is refused too, not mapped into a new map
         rs = svc.robots["r1"]
         assert rs.lost_epoch == 1 and rs.mapper is None
+        asked = _MapQuery(keys.map("r1", "e1"))  # a map query says why there is none
+        svc._on_map_query(asked)  # type: ignore[arg-type]
+        assert asked.err.startswith(f"{NO_MAP} 'r1': its mapper was lost (1 so far)"), asked.err
         queued = wire.Scan(robot="r1", seq=3, send_stamp=3.0, capture_stamp=3.0, voxel=0.0, voxel_max=0.05,
                            max_range=30.0, n_raw=len(pts[3]), points=pts[3], edge="e1", epoch=1)
         svc._register(rs, Queued(queued, time.monotonic(), 0.1))

@@ -142,7 +142,7 @@ def test_deskew_undoes_the_sweep_of_a_fast_turning_robot() -> None:
 
 def test_kiss_icp_gets_row_major_points_whatever_the_layout_it_is_handed(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """KISS-ICP's binding converts a column-major array point by point (60 times slower than a
+    """KISS-ICP's binding converts a column-major array point by point (hundreds of times slower than a
     row-major one): the edge's mapper and the robot's local odometry hand it row-major points
     whatever they were given, and register them as the row-major copy (to the last bits of
     KISS-ICP's multithreaded sums)."""

@@ -193,7 +193,8 @@ def test_an_older_edge_answering_busy_is_asked_again_on_its_own_key_once_a_round
 def test_an_edge_that_does_not_map_the_robot_is_logged_at_debug_and_one_that_lost_it_at_info(
         sessions: tuple[Any, Any], caplog: pytest.LogCaptureFixture) -> None:
     """The live view asks every live edge until an ack names the robot's: the usual answer of an
-    edge that does not map it is not worth a line each poll; an edge that lost its map says why."""
+    edge asked in case that does not map it is not worth a line each poll (an edge the caller
+    knew to map the robot is: ``guessed=False``); an edge that lost its map says why."""
     from zoffload.runtime import maps
 
     side, querier = sessions
@@ -207,10 +208,14 @@ def test_an_edge_that_does_not_map_the_robot_is_logged_at_debug_and_one_that_los
         fleet.wait_routed(querier, ["e1"])
         wait_for(lambda: any(r.err is not None for r in querier.get(KEYS.map("r1", "e2"), timeout=2)), 10,
                  "e2's queryable")
-        with caplog.at_level(logging.DEBUG, "zoffload.maps"):
-            assert maps.ask_map(querier, KEYS, "r1", ["e1", "e2"], _Drops(), timeout=5) is None
-        by_edge = {r.getMessage().split("edge ")[1][:4]: r.levelno for r in caplog.records}
-        assert by_edge == {"'e1'": logging.DEBUG, "'e2'": logging.INFO}, caplog.text
+        for guessed, plain in ((True, logging.DEBUG), (False, logging.INFO)):
+            caplog.clear()
+            with caplog.at_level(logging.DEBUG, "zoffload.maps"):
+                assert maps.ask_map(querier, KEYS, "r1", ["e1", "e2"], _Drops(), timeout=5,
+                                    guessed=guessed) is None
+            by_edge = {r.getMessage().split("edge ")[1][:4]: r.levelno for r in caplog.records
+                       if r.name == "zoffload.maps"}
+            assert by_edge == {"'e1'": plain, "'e2'": logging.INFO}, caplog.text
     finally:
         held.undeclare()
         fleet.close()
