@@ -61,7 +61,7 @@ from zoffload.protocol import wire
 from zoffload.protocol.intake import edge_status, edge_token, robot_in_key
 from zoffload.protocol.keys import Keys, check_id
 from zoffload.runtime.drops import Drops
-from zoffload.runtime.maps import BUSY, NO_MAP
+from zoffload.runtime.maps import BUSY, no_map_reply
 from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.mapping")
@@ -660,8 +660,8 @@ class MappingService:
             rs = self.robots.get(robot) if robot else None
         if rs is None or rs.mapper is None:
             lost = rs.counters["mapper_lost"] if rs is not None else 0
-            why = f": its mapper was lost ({lost} so far); its next scan starts a new map" if lost else ""
-            query.reply_err(f"{NO_MAP} {robot!r}{why}".encode())
+            why = f"its mapper was lost ({lost} so far); its next scan starts a new map" if lost else ""
+            query.reply_err(no_map_reply(robot, why).encode())
             return
         if not self._map_reply.acquire(blocking=False):
             query.reply_err(f"{BUSY} another map reply is being built; ask again".encode())
@@ -674,7 +674,7 @@ class MappingService:
                 seqs, poses = mapper.trajectory()
                 points = mapper.map_cloud()
             except Exception as exc:  # its mapper process was lost, say
-                query.reply_err(f"{NO_MAP} {robot!r}: {exc}"[:300].encode())
+                query.reply_err(no_map_reply(robot, str(exc))[:300].encode())
                 return
             reply = wire.MapReply(robot=rs.robot, scans=mapper.scans, points=points,
                                   seqs=seqs, poses=poses, edge=self.edge_id)

@@ -27,7 +27,13 @@ log = logging.getLogger("zoffload.maps")
 BUSY = "busy:"  # how an edge's error reply begins when it is building another querier's map reply
 BUSY_TRIES = 4
 BUSY_WAIT_S = 0.25
-NO_MAP = "no map for robot"  # an edge's error reply when it does not map the robot (": why" when it lost it)
+NO_MAP = "no map for robot"  # how an edge's error reply begins when it does not map the robot
+
+
+def no_map_reply(robot: str | None, why: str = "") -> str:
+    """An edge's error reply when it does not map ``robot``; ``why`` when it had a map and lost it.
+    The edge answers with it and ``ask_map`` recognises the plain one by it."""
+    return f"{NO_MAP} {robot!r}: {why}" if why else f"{NO_MAP} {robot!r}"
 
 
 def live_edges(session: zenoh.Session, keys: Keys, drops: DropCounter, timeout: float = 5.0) -> list[str]:
@@ -59,7 +65,7 @@ def ask_map(session: zenoh.Session, keys: Keys, robot: str, edges: Sequence[str]
                     why = reply.err.payload.to_bytes()[:200].decode(errors="replace") if reply.err else "?"
                     if why.startswith(BUSY):
                         busy[(edge, key)] = None
-                    elif guessed and why == f"{NO_MAP} {robot!r}":  # an edge asked in case: as usual
+                    elif guessed and why == no_map_reply(robot):  # an edge asked in case: as usual
                         log.debug("no map of %s from edge %r", robot, edge)
                     else:
                         log.info("no map of %s from edge %r: %s", robot, edge, why)
