@@ -31,7 +31,9 @@ another edge are only counted (``other_edge``: read from the payload without dec
 scans under an epoch not attached here are refused. Draining and shedding ask the robot's worker
 for a final checkpoint, taken after its next registered scan, or at once if the robot is idle.
 A scan that carries the robot's own estimate (``Scan.prior``: it bridged an outage with its local
-odometry) after scans this mapper missed is predicted from it (``predicted_from_prior``).
+odometry, or mapped the scans read while its attach was under way) after scans this mapper
+missed is predicted from it (``predicted_from_prior``; an estimate in the frame of the attach's
+poses moved as the attach's backfill moved them).
 
 Every sample is counted once: ``samples`` = ``received`` + ``other_edge`` + the drops by reason
 (``bad_key``, ``refused``, ``malformed``, ``foreign``, ``callback_error``, ``stale_epoch``,

@@ -246,8 +246,15 @@ class RobotMapper:
         self.after_gap = 0  # of them, scans after a gap
         self.guessed = 0  # of those, registered from more than one guess (_register_after_gap)
         # A robot's estimate for a scan, contested (``predict_from``): (seq, prior_seq, pose, motion
-        # per scan), taken by that scan's ``register``
-        self._prior: tuple[int, int, np.ndarray, np.ndarray] | None = None
+        # per scan, the same estimate in the other frame (name, pose) or None), taken by that
+        # scan's ``register``
+        self._prior: tuple[int, int, np.ndarray, np.ndarray, tuple[str, np.ndarray] | None] | None = None
+        # The last attach (``continue_from``): how it moved the robot's poses into this mapper's
+        # frame (the correction its backfill found; identity without one), and the first scan
+        # registered after it (None until then): a robot's estimate of a scan before that one is
+        # in the frame of the poses it handed over (``predict_from``)
+        self._handover: np.ndarray | None = None
+        self._live_from: int | None = None
         self.turned = 0  # of those, registered from a turned guess
         self.backfilled = 0  # scans registered from an attach's backfill (continue_from)
         self.backfilled_seqs: deque[int] = deque(maxlen=BACKFILL_SEQS_KEPT)  # which, the newest
@@ -267,22 +274,30 @@ class RobotMapper:
         estimate ``predict_from`` took, contested, for this scan is applied here, and undone if
         the registration fails (another scan's is dropped)."""
         prior, self._prior = self._prior, None
+        if self._live_from is None:
+            self._live_from = int(seq)  # (``continue_from`` sets it None after its backfill)
         if prior is None or prior[0] != int(seq):
             return self._register(seq, points, times, map_points)
         odo = self.odometry
         own = (odo.last_pose.copy(), odo.last_delta.copy(), self.last_seq)
-        self._take(*prior[1:])
+        _, prior_seq, pose, delta, other = prior
+        self._take(prior_seq, pose, delta)
+        alt = None  # the estimate in the other frame: where it would put this scan
+        if other is not None:
+            alt = (other[0], as_rigid(other[1] @ se3_power(delta, int(seq) - prior_seq)))
         try:
-            return self._register(seq, points, times, map_points, (*own, prior[3]))
+            return self._register(seq, points, times, map_points, (*own, delta), alt)
         except BaseException:
             odo.last_pose, odo.last_delta, self.last_seq = own
             raise
 
     def _register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None,
                   map_points: np.ndarray | None = None,
-                  own: tuple[np.ndarray, np.ndarray, int | None, np.ndarray] | None = None) -> Registration:
+                  own: tuple[np.ndarray, np.ndarray, int | None, np.ndarray] | None = None,
+                  alt: tuple[str, np.ndarray] | None = None) -> Registration:
         """``register``; ``own``: this mapper's pose, motion per scan and last seq before a
-        contested estimate of the robot's was taken for this scan, and the robot's motion."""
+        contested estimate of the robot's was taken for this scan, and the robot's motion;
+        ``alt``: that estimate's guess for this scan in the other frame (``predict_from``)."""
         t0 = time.perf_counter()
         # row-major: KISS-ICP's binding converts any other layout point by point (hundreds of times slower)
         frame = np.ascontiguousarray(points, dtype=np.float64)
@@ -293,6 +308,7 @@ class RobotMapper:
         stretch = 1 < gap <= self.max_gap
         contested = own is not None
         own_guess = self._own_guess(int(seq), own)
+        others = [g for g in (alt, own_guess) if g is not None]
         previous = self.odometry.last_pose.copy()
         if (stretch or contested) and len(stamps):
             # Deskew with one period of motion (the sweep's), not the stretched prediction
@@ -302,7 +318,7 @@ class RobotMapper:
         self.after_gap += after_gap
         gap_motion = ""
         if after_gap:
-            guesses, spare = self._gap_guesses(gap, frame, own_guess, contested)
+            guesses, spare = self._gap_guesses(gap, frame, others, contested)
             keypoints, gap_motion = self._register_after_gap(int(seq), frame, gap, guesses, spare)
         else:
             if stretch:
@@ -321,7 +337,7 @@ class RobotMapper:
             # velocity of metres a scan) but the robot's own motion per scan where its estimate
             # won, else the motion from this mapper's own last scan (within ``max_gap``)
             own_pose, _, before, robot_delta = own
-            if gap_motion in ("prior", ""):
+            if gap_motion == "" or gap_motion.startswith("prior"):
                 previous, gap = pose @ np.linalg.inv(robot_delta), 1
                 self.odometry.last_delta = robot_delta
             elif own_guess is not None and before is not None:  # (its last scan within max_gap)
@@ -368,7 +384,7 @@ class RobotMapper:
         self.odometry.last_delta = delta
         self.last_seq = int(prior_seq) - 1
 
-    def _gap_guesses(self, gap: int, frame: np.ndarray, own: tuple[str, np.ndarray] | None = None,
+    def _gap_guesses(self, gap: int, frame: np.ndarray, others: Sequence[tuple[str, np.ndarray]] = (),
                      prior: bool = False) -> tuple[Guesses, Guesses]:
         """The initial guesses for a scan ``gap`` periods after the last one, in two lists: the
         first of ``gap_motions`` and each other that moves the scan's points farther from where
@@ -389,14 +405,15 @@ class RobotMapper:
         turn's onset three periods after the last scan ICP settled 20 degrees off from a kept
         guess 2.9 m from the right one; those are the spare guesses.
         ``prior``: the first guess is the robot's estimate (``predict_from``, contested; named
-        "prior"), and ``own`` this mapper's own guess, one more of the others: the robot's odometry can be
-        wrong (a gap in a turn), and an edge that took its estimate as it was jumped 3 m at the
-        scan that carried it (the simulator's ``wifi-locations``, scan 358 of a run on 2026-12-07:
-        0.06 m off before it, 5.2 m at the run's end)."""
+        "prior"), and ``others`` more of the others: this mapper's own guess ("own") and the
+        estimate in the other frame of an attach ("prior_moved" or "prior_unmoved", ``predict_from``).
+        The robot's odometry can be wrong (a gap in a turn), and an edge that took its estimate as
+        it was jumped 3 m at the scan that carried it (the simulator's ``wifi-locations``, scan 358
+        of a run on 2026-12-07: 0.06 m off before it, 5.2 m at the run's end)."""
         odo = self.odometry
         sigma = odo.adaptive_threshold.get_threshold()
         motions = [(name, odo.last_pose @ as_rigid(se3_power(odo.last_delta, gap * factor)))
-                   for name, factor in self.gap_motions] + ([own] if own is not None else [])
+                   for name, factor in self.gap_motions] + list(others)
         if prior:
             motions[0] = ("prior", motions[0][1])
         first = motions[0][1]
@@ -488,12 +505,15 @@ class RobotMapper:
         after the robot's checkpoint) do not cover."""
         seeded = False
         self._prior = None
+        self._handover = np.eye(4)
         if checkpoint is not None:  # the turn rate the last mapper learnt (version 8; 0: not said)
             self.turn_rate = max(self.turn_rate, min(float(checkpoint.turn_rate), TURN_RATE_MAX))
         carried = self._backfill(backfill, local_seqs, local_poses, backfill_poses) if backfill else None
         if carried is not None:
             checkpoint = None  # its pose is the robot's, drifted; the backfill has carried this mapper on
-            local_seqs, local_poses = carried  # the robot's poses after it, moved as the backfill's last
+            # the robot's poses after it, moved as the backfill's last was, and that correction
+            local_seqs, local_poses, self._handover = carried
+        self._live_from = None  # (the backfill's registrations are not live scans)
         if checkpoint is not None and (self.last_seq is None or checkpoint.seq > self.last_seq):
             matches = config_matches(self.odometry, checkpoint)
             if (not matches or not checkpoint.edge) and self.last_seq is not None:
@@ -539,7 +559,7 @@ class RobotMapper:
 
     def _backfill(self, backfill: Sequence[tuple[int, np.ndarray]], local_seqs: np.ndarray,
                   local_poses: np.ndarray, backfill_poses: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray] | None:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Register the backfill's scans newer than this mapper's last (``continue_from``); the
         first, after scans this mapper missed, from the robot's own pose of it when the robot
         handed one over (``predict_from``), else only within ``BACKFILL_GAP`` scans (constant
@@ -552,7 +572,8 @@ class RobotMapper:
         runs, against −5 ± 1 % in three without).
         A registration that fails ends it there (the rest left unused). Returns the robot's poses
         after the last scan registered, moved by the correction this mapper found for it (the
-        robot's pose of that scan against its own), or None when nothing was registered.
+        robot's pose of that scan against its own), and that correction; or None when nothing was
+        registered.
         """
         last = self.last_seq
         newer = [(int(s), p) for s, p in backfill if last is not None and int(s) > last]
@@ -615,7 +636,7 @@ class RobotMapper:
             robot_end = np.asarray(robot_of[end], np.float64) if end in robot_of else None
         correction = self.poses[-1] @ np.linalg.inv(robot_end) if robot_end is not None else np.eye(4)
         after = seqs > end
-        return seqs[after], np.einsum("ij,njk->nik", correction, poses[after])
+        return seqs[after], np.einsum("ij,njk->nik", correction, poses[after]), correction
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
                      contest: bool = False) -> bool:
@@ -628,7 +649,16 @@ class RobotMapper:
         than ``max_gap`` scans is ignored. Returns whether it was taken; the next ``register``
         of ``seq`` predicts ``pose @ delta^(seq - prior_seq)``, and with ``contest`` (a scan's
         ``prior``, from the network) tries this mapper's own guess too (``_gap_guesses``); such
-        an estimate whose motion per scan passes ``STEP_MAX`` or ``TURN_RATE_MAX`` is not taken."""
+        an estimate whose motion per scan passes ``STEP_MAX`` or ``TURN_RATE_MAX`` is not taken.
+
+        A contested estimate's frame after an attach whose backfill moved the robot's poses
+        (``continue_from``): the robot's poses of the scans it read while the attach was under way,
+        or of a bridge it started before this mapper's answers reached it, are in the frame of the
+        poses it handed over. So an estimate of a scan before the first one registered after the
+        attach is moved by the same correction, and the other frame's version of any estimate is
+        one more guess. Before, the robot sent none after a slow attach, and a mapper carried by
+        a backfill to the scan before a turn (KITTI-360 replayed ping-pong, ``cellular-heldout``)
+        stretched its motion over the five scans read meanwhile: eight scans, 7.4 m, off."""
         last = self.last_seq
         if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
             return False
@@ -637,7 +667,15 @@ class RobotMapper:
                         or _yaw_of(delta) > TURN_RATE_MAX):
             return False  # no robot moves so (a wrong or hostile estimate): not taken
         if contest:  # taken by the scan's register (not if it never comes, or fails)
-            self._prior = (int(seq), int(prior_seq), np.asarray(pose, np.float64), delta)
+            pose, other = np.asarray(pose, np.float64), None
+            c = self._handover
+            if c is not None and not np.allclose(c, np.eye(4)):
+                moved = as_rigid(c @ pose)
+                if self._live_from is None or prior_seq < self._live_from:
+                    pose, other = moved, ("prior_unmoved", pose)
+                else:
+                    other = ("prior_moved", moved)
+            self._prior = (int(seq), int(prior_seq), pose, delta, other)
         else:
             self._take(prior_seq, pose, delta)
         return True

@@ -210,10 +210,12 @@ class Scan(Message):
     time_span: float = _num(0.0, lo=0.0, hi=10.0)  # seconds the points' times cover; 0 = no times
     times: np.ndarray | None = _array(ArraySpec("<u2", (-1,), cap="max_points"), optional=True)  # f32
     edge: str = _text("", max_len=ID_MAX)  # the edge the robot is attached to ("": no attach protocol)
-    # Version 5: the robot's own estimate while its edge's answers were overdue (robot/localpose.py):
-    # its local odometry's pose after scan ``prior_seq`` (in the edge's world frame) and its motion
-    # per scan period then. An edge that missed the scans before this one predicts from it
-    # instead of stretching its constant-velocity model over the gap (mapping/mapper.py).
+    # Version 5: the robot's own estimate while its edge's answers were overdue, or for the scans
+    # it read while its attach was under way (robot/localpose.py): its local odometry's pose after
+    # scan ``prior_seq`` (in the frame of the poses the robot has: the edge's answers, or those of
+    # its attach, which the edge moves it as it moved those) and its motion per scan period then.
+    # An edge that missed the scans before this one predicts from it instead of stretching its
+    # constant-velocity model over the gap (mapping/mapper.py ``predict_from``).
     prior_seq: int = _num(-1, lo=-1, hi=SEQ_MAX, since=5)
     prior: np.ndarray | None = _array(ArraySpec("<f8", (2, 4, 4), values="rigid"), optional=True, since=5)
 

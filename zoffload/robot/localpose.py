@@ -18,10 +18,14 @@ Two situations, one light KISS-ICP (robot/odometry.py):
 
 And when the robot has moved because its edge's token went (a dead process: the move is at once,
 no bridging happened), the scans in flight to it are registered here at the first scan under the
-new assignment, so they have poses too. When that attach takes longer than a period, the scans
-read meanwhile are registered here with no edge, and the next edge's first scans carry no prior:
-the attach handed the poses over, and a prior (the robot's own pose, drifted) could undo the
-correction the edge finds when it registers an attach's backfill (mapping/mapper.py ``_backfill``).
+new assignment, so they have poses too. When an attach takes longer than a period, the scans
+read meanwhile are registered here with no edge (after the poses the attach handed over), and
+the next edge's first scans carry the newest of them as their prior, until that edge acks one:
+the edge predicts from it, moved by the correction it found when it registered the attach's
+backfill, as it moved the handed-over poses (mapping/mapper.py ``predict_from``). They carried
+none before (the robot's pose, drifted, could have undone that correction), and an edge carried
+by its backfill to the scan before the robot reversed (KITTI-360 replayed ping-pong) stretched its
+motion over the scans read during the attach: 7.4 m off.
 
 Either way a period starts from the freshest checkpoint (the edge's or our own) and the newest
 poses the robot has after it (the edge's acked ones, or its own of an earlier period), and first
@@ -129,6 +133,9 @@ class PoseKeeper:
         with self.lock:
             self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
             self.pose = (pose, 1.0)
+            # the prior of the next edge's first scans: those read while its attach was under way
+            # are after the poses it hands over (``attached`` starts it, that edge's ack ends it)
+            self._local = (reading.seq, pose, odo.motion)
         return True
 
     def attached(self, reading: Reading, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
@@ -143,7 +150,11 @@ class PoseKeeper:
         if odo is None:
             return None
         previous, self._target = self._target, target
-        if previous is not None and previous != target:
+        if previous is None:
+            with self.lock:  # after scans with no edge: the next edge's ack ends their prior
+                if self._local is not None and self._bridge_from is None and self._prior_from is None:
+                    self._prior_from = reading.seq
+        elif previous != target:
             with self.lock:  # another assignment: the attach handed the poses over
                 self._bridge_from, self._local, self._prior_from = None, None, None
             self._bridging = False  # so a bridge to the new edge is one of its own, ended by its acks

@@ -441,3 +441,55 @@ def test_a_backfill_after_a_gap_needs_the_robots_pose_and_a_failed_scan_ends_it(
     assert broken.backfilled == 9 and broken.backfill_unused == 5 and broken.last_seq == 28
     assert list(broken.backfilled_seqs) == list(range(20, 29))  # which: the edge writes them out
     assert list(posed.backfilled_seqs) == list(range(26, 34)) and not far.backfilled_seqs
+
+
+def test_a_robots_estimate_from_a_slow_attach_is_moved_as_its_handed_over_poses_were() -> None:
+    """The robot's own odometry drifted over an outage (here its frame is 4 m and 30 degrees off the
+    edge's), it handed the outage over as a backfill, and the attach took ten scans, read in a turn
+    and mapped by the robot alone. The edge's backfill corrects the robot's poses into its own
+    frame; the first scan it gets after the attach carries the robot's pose of the scan before it
+    (``Scan.prior``), in the frame of the handed-over poses, so the edge moves it by the same
+    correction: 0.09-0.12 m off over the next three scans. Taken as sent they are 4.1 m off (the
+    edge's own guess, the motion before the turn stretched over eleven scans, does not win
+    either). KITTI-360 ping-pong, ``cellular-heldout``, where the robot sent no estimate after a
+    slow attach: 7.4 m off at the scans after one (2026-12-07)."""
+    start, lost, back, live = 760, 770, 786, 796
+    raw = {i: SRC.read(i) for i in range(start, live + 3)}
+
+    def error(pose: np.ndarray, i: int) -> float:  # both frames start at scan ``start``
+        truth = np.linalg.inv(raw[start].gt_pose) @ raw[i].gt_pose
+        return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3]))
+
+    robot = RobotMapper(voxel_size=0.8, max_range=SRC.max_range)  # the robot's coarse odometry
+    for i in range(start, live):
+        robot.register(i, raw[i].points)
+    drift = _yaw(np.radians(30.0))
+    drift[:2, 3] = (4.0, -1.0)
+    mine = {i: drift @ robot.poses[i - start] for i in range(start, live)}  # its poses, drifted
+    seqs = np.arange(lost, back)
+    backfill = [(i, voxel_downsample(raw[i].points, 0.8)) for i in seqs]
+    prior = mine[live - 1], robot.odometry.last_delta
+    runs = {}
+    for moved in (True, False):
+        m = RobotMapper(voxel_size=0.4, max_range=SRC.max_range)
+        for i in range(start, lost):
+            m.register(i, voxel_downsample(raw[i].points, 0.1))
+        m.continue_from(None, seqs, np.stack([mine[i] for i in seqs]), backfill,
+                        np.stack([mine[i] for i in seqs]))
+        assert m.backfilled == back - lost and m.last_seq == back - 1
+        if not moved:
+            m._handover = None  # as before: the estimate taken in the frame it was sent in
+        assert m.predict_from(live, live - 1, *prior, contest=True)
+        regs = [m.register(i, voxel_downsample(raw[i].points, 0.1)) for i in range(live, live + 3)]
+        runs[moved] = ([error(r.pose, i) for r, i in zip(regs, range(live, live + 3), strict=True)],
+                       regs[0].gap_motion)
+        if moved:
+            # after the attach's first live scan, an estimate is in this mapper's frame (a bridge
+            # begun from its answers): taken as sent, the moved one is the other guess
+            pose = m.poses[-1] @ robot.odometry.last_delta
+            assert m.predict_from(live + 5, live + 4, pose, robot.odometry.last_delta, contest=True)
+            assert m._prior is not None and np.array_equal(m._prior[2], pose)
+            assert m._prior[4] is not None and m._prior[4][0] == "prior_moved"
+    (errors, kept), (unmoved, _) = runs[True], runs[False]
+    assert max(errors) < 0.25 and kept == "prior", (errors, kept)
+    assert min(unmoved) > 1.0, unmoved

@@ -167,12 +167,13 @@ def test_scans_in_flight_to_a_dead_edge_get_local_poses_after_the_move(edge_run:
     assert 33 not in ledger.poses and keeper.metrics()["caught_up"] == 2
 
 
-def test_after_a_slow_attach_the_next_edge_gets_no_prior(edge_run: tuple) -> None:
+def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_until_it_answers(
+        edge_run: tuple) -> None:
     """The dead edge's move goes through an attach that takes longer than a period: the scans
-    read meanwhile are mapped here with no edge, and the next edge's first scans carry no prior
-    (its poses come with the attach; the robot's own, drifted pose could undo the correction the
-    edge finds registering an attach's backfill). The prior after a dead edge is for the road
-    where the attach is in place by the next scan (tests/daemon/robot/test_fleet.py)."""
+    read meanwhile are mapped here with no edge, after the poses the attach handed over. The next
+    edge's first scans carry the newest of them as their prior (the edge moves it as it moved the
+    handed-over poses, mapping/mapper.py ``predict_from``) until that edge acks one of them; a
+    late ack of an older scan does not end it."""
     import threading
     import time
 
@@ -196,8 +197,18 @@ def test_after_a_slow_attach_the_next_edge_gets_no_prior(edge_run: tuple) -> Non
     for i in (32, 33):
         assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
     assert {30, 31, 32, 33} <= set(ledger.poses) and ledger.records[31]["pose_source"] == "local"
-    assert keeper.attached(Reading(34, src.read(34), time.time()), ("edge2", 2)) is None
-    assert keeper.prior_for(34) is None and not odo.active
+    for i in (34, 35):
+        assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge2", 2)) is None
+        got = keeper.prior_for(i)
+        assert got is not None and got[0] == 33 and np.array_equal(got[1][0], ledger.poses[33])
+    assert not odo.active  # edge2 is not overdue: no bridge, the odometry's period is over
+    assert np.linalg.norm(got[1][0][:3, 3] - mapper.poses[33][:3, 3]) < 0.5
+    with lock:
+        keeper.edge_pose(31, mapper.poses[31])  # a late answer of edge1's: the prior goes on
+    assert keeper.prior_for(36) is not None
+    with lock:
+        keeper.edge_pose(34, mapper.poses[34])  # edge2 answers its first scan
+    assert keeper.prior_for(36) is None
 
 
 def test_a_period_starts_from_the_newest_poses_the_robot_has_its_own_included(edge_run: tuple) -> None:
