@@ -407,9 +407,9 @@ class ProcessMapper:
         return cp
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
-                     contest: bool = False) -> bool:
+                     contest: bool = False, frame: int = -1) -> bool:
         return bool(self._call_within(self.register_timeout, "predict_from", seq, prior_seq, pose, delta,
-                                      contest))
+                                      contest, frame))
 
     def close(self) -> None:
         """Free the mapper in its process (the robot was evicted; its map exported before)."""

@@ -359,7 +359,8 @@ class MappingService:
             if scan.prior is not None and hasattr(rs.mapper, "predict_from"):
                 # The robot bridged scans this mapper missed: predict from its estimate
                 mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
-                if mapper.predict_from(scan.seq, scan.prior_seq, scan.prior[0], scan.prior[1], contest=True):
+                if mapper.predict_from(scan.seq, scan.prior_seq, scan.prior[0], scan.prior[1], contest=True,
+                                       frame=scan.prior_frame):
                     self._count(rs, "predicted_from_prior")
             # Decodes a coded payload (WireError if it is corrupt); the per-point times, when the
             # scan carries them, deskew it if the mapper was made to

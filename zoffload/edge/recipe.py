@@ -135,8 +135,8 @@ class BoundedMapper:
         return seeded
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
-                     contest: bool = False) -> bool:
-        return self.inner.predict_from(seq, prior_seq, pose, delta, contest)
+                     contest: bool = False, frame: int = -1) -> bool:
+        return self.inner.predict_from(seq, prior_seq, pose, delta, contest, frame)
 
     def checkpoint(self, robot: str, edge: str, epoch: int, stamp: float, resolution: float | None = None,
                    final: bool = False, coded: bool = True) -> wire.Checkpoint | None:

@@ -274,22 +274,24 @@ class RobotMapper:
         estimate ``predict_from`` took, contested, for this scan is applied here, and undone if
         the registration fails (another scan's is dropped)."""
         prior, self._prior = self._prior, None
+        if prior is None or prior[0] != int(seq):
+            reg = self._register(seq, points, times, map_points)
+        else:
+            odo = self.odometry
+            own = (odo.last_pose.copy(), odo.last_delta.copy(), self.last_seq)
+            _, prior_seq, pose, delta, other = prior
+            self._take(prior_seq, pose, delta)
+            alt = None  # the estimate in the other frame: where it would put this scan
+            if other is not None:
+                alt = (other[0], as_rigid(other[1] @ se3_power(delta, int(seq) - prior_seq)))
+            try:
+                reg = self._register(seq, points, times, map_points, (*own, delta), alt)
+            except BaseException:
+                odo.last_pose, odo.last_delta, self.last_seq = own
+                raise
         if self._live_from is None:
             self._live_from = int(seq)  # (``continue_from`` sets it None after its backfill)
-        if prior is None or prior[0] != int(seq):
-            return self._register(seq, points, times, map_points)
-        odo = self.odometry
-        own = (odo.last_pose.copy(), odo.last_delta.copy(), self.last_seq)
-        _, prior_seq, pose, delta, other = prior
-        self._take(prior_seq, pose, delta)
-        alt = None  # the estimate in the other frame: where it would put this scan
-        if other is not None:
-            alt = (other[0], as_rigid(other[1] @ se3_power(delta, int(seq) - prior_seq)))
-        try:
-            return self._register(seq, points, times, map_points, (*own, delta), alt)
-        except BaseException:
-            odo.last_pose, odo.last_delta, self.last_seq = own
-            raise
+        return reg
 
     def _register(self, seq: int, points: np.ndarray, times: np.ndarray | None = None,
                   map_points: np.ndarray | None = None,
@@ -639,7 +641,7 @@ class RobotMapper:
         return seqs[after], np.einsum("ij,njk->nik", correction, poses[after]), correction
 
     def predict_from(self, seq: int, prior_seq: int, pose: np.ndarray, delta: np.ndarray,
-                     contest: bool = False) -> bool:
+                     contest: bool = False, frame: int = -1) -> bool:
         """Take the robot's own estimate (its pose after scan ``prior_seq`` and its motion per scan
         then, in this mapper's world frame) as the prediction for scan ``seq``, when this mapper
         missed scans before ``seq`` that the estimate covers: over a gap the constant-velocity
@@ -653,12 +655,14 @@ class RobotMapper:
 
         A contested estimate's frame after an attach whose backfill moved the robot's poses
         (``continue_from``): the robot's poses of the scans it read while the attach was under way,
-        or of a bridge it started before this mapper's answers reached it, are in the frame of the
-        poses it handed over. So an estimate of a scan before the first one registered after the
-        attach is moved by the same correction, and the other frame's version of any estimate is
-        one more guess. Before, the robot sent none after a slow attach, and a mapper carried by
-        a backfill to the scan before a turn (KITTI-360 replayed ping-pong, ``cellular-heldout``)
-        stretched its motion over the five scans read meanwhile: eight scans, 7.4 m, off."""
+        or of a bridge it began from its own checkpoint before this mapper's reached it, are in
+        the frame of the poses it handed over, and are moved by the same correction. ``frame``
+        (``Scan.prior_frame``, version 11) is the robot's word: 1 that frame, 0 this mapper's.
+        Not said (-1, an older robot), an estimate of a scan before the first registered after
+        the attach is moved, and the other frame's version of any is one more guess. Before, the
+        robot sent none after a slow attach, and a mapper carried by a backfill to the scan before
+        a turn (KITTI-360 replayed ping-pong, ``cellular-heldout``) stretched its motion over the
+        five scans read meanwhile: eight scans, 7.4 m, off."""
         last = self.last_seq
         if last is None or seq - last <= 1 or not last < prior_seq <= seq or seq - prior_seq >= self.max_gap:
             return False
@@ -671,10 +675,13 @@ class RobotMapper:
             c = self._handover
             if c is not None and not np.allclose(c, np.eye(4)):
                 moved = as_rigid(c @ pose)
-                if self._live_from is None or prior_seq < self._live_from:
+                live = self._live_from
+                if frame == 1:
+                    pose = moved
+                elif frame == -1 and (live is None or prior_seq < live):
                     pose, other = moved, ("prior_unmoved", pose)
-                else:
-                    other = ("prior_moved", moved)
+                elif frame == -1 and live is not None and prior_seq < live + self.max_gap:
+                    other = ("prior_moved", moved)  # (a bridge begun before this mapper's answers came)
             self._prior = (int(seq), int(prior_seq), pose, delta, other)
         else:
             self._take(prior_seq, pose, delta)

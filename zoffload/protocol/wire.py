@@ -12,7 +12,7 @@ shapes and byte lengths, and row counts within ``Limits`` (points per scan, pixe
 detections per frame). Decoders of nested payloads (q16z scans, JPEG frames) check the sizes the
 message declares before they allocate.
 
-Versions: this build reads 1 to 8. Version 2 only added fields with defaults (the assignment
+Versions: this build reads 1 to 11. Version 2 only added fields with defaults (the assignment
 epoch and edge, deliberately skipped scans, per-point times) and messages (checkpoint, attach,
 attach reply), so a version-1 sender is still understood. Version 3 added a frame's camera size
 (a frame shrunk to the edge detector's input). Version 4 added the codec version a frame's sender
@@ -30,7 +30,12 @@ the answering edge of a map reply (``MapReply.edge``), sent only on the per-edge
 Version 8 added a checkpoint's turn rate (``Checkpoint.turn_rate``: the robot's fastest yaw per
 scan period the mapper saw, which the next mapper's turned guesses after a gap start from); an
 edge puts it in the checkpoints for a robot whose attach said 8, and the robot in the checkpoint
-it hands to an edge whose status says 8. A
+it hands to an edge whose status says 8. Version 9 added an attach's backfill (``Attach.backfill``)
+and version 10 the robot's pose of each backfilled scan (``Attach.backfill_poses``). Version 11
+added the frame of a scan's prior (``Scan.prior_frame``: the attach's handed-over poses, or the
+edge's answers), which the robot says only to an edge whose status says 11; to an older edge it
+sends no prior of the scans it read while an attach was under way (the edge could not tell that
+frame from its own). A
 message is sent as the lowest version that carries its fields away from their defaults, else as
 version 2 without them, and each side sends a newer field only to a peer that said it reads it:
 the robot shrinks a frame, or says it reads 4, only for an edge whose status said what its
@@ -38,7 +43,7 @@ detector takes, or that it reads 4 (``wire.reads``); the edge stamps the arrival
 answer to a frame that said so. So a version-2 or -3 robot or edge on the other side reads
 everything this one sends it (a passive listener of an older build, such as its viewer, refuses
 the newer messages, as it refused shrunk frames: counted and logged there). Decoding is lenient
-about the label: a message is read by its fields (each checked), whatever version between 1 and 8
+about the label: a message is read by its fields (each checked), whatever version between 1 and 11
 it says it is.
 """
 
@@ -55,7 +60,7 @@ import msgpack
 import numpy as np
 
 BASE_VERSION = 2  # what a message without newer fields goes as (``encode``: the lowest that carries it)
-READS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+READS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)
 READS_KEY = "wire.reads"  # the status value where a peer says the newest version it reads
 SEQ_MAX = 2**63 - 1
 ID_MAX = 64
@@ -218,10 +223,17 @@ class Scan(Message):
     # constant-velocity model over the gap (mapping/mapper.py ``predict_from``).
     prior_seq: int = _num(-1, lo=-1, hi=SEQ_MAX, since=5)
     prior: np.ndarray | None = _array(ArraySpec("<f8", (2, 4, 4), values="rigid"), optional=True, since=5)
+    # Version 11: the frame the prior is in, as the robot knows it: 1 that of the poses it handed
+    # over with its attach to this edge (its local odometry began from its own checkpoint or
+    # another edge's: the edge moves it as it moved those), 0 that of this edge's answers (began
+    # from this edge's checkpoint under the scan's epoch); -1 not said (an older robot)
+    prior_frame: int = _num(-1, lo=-1, hi=1, since=11)
 
     def __post_init__(self) -> None:
         if (self.prior is None) != (self.prior_seq < 0):
             raise WireError("scan: a prior needs both its scan number and its pose and motion")
+        if self.prior_frame >= 0 and self.prior is None:
+            raise WireError(f"scan {self.seq}: the frame of a prior it does not carry")
         if self.prior_seq > self.seq:
             raise WireError(f"scan {self.seq}: a prior from a later scan ({self.prior_seq})")
 

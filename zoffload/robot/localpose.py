@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from zoffload.protocol import wire
 from zoffload.robot.fleet import FleetState
 from zoffload.robot.ledger import ScanLedger
 from zoffload.robot.odometry import MAX_GAP, LocalOdometry, Snapshot
@@ -80,8 +81,12 @@ class PoseKeeper:
         # The bridge's first scan, until the edge acks it or a later one (the bridge and its priors
         # may end then)
         self._bridge_from: int | None = None
-        # The newest bridged registration (seq, pose, motion per period), for ``prior_for``
-        self._local: tuple[int, np.ndarray, np.ndarray] | None = None
+        # The newest bridged registration (seq, pose, motion per period, whether it was made with
+        # no edge), for ``prior_for``
+        self._local: tuple[int, np.ndarray, np.ndarray, bool] | None = None
+        # The frame the local odometry's period is in: that of an edge's answers under an epoch
+        # (it began from that edge's checkpoint), or None (the robot's own, or none)
+        self._frame: tuple[str, int] | None = None
         # After a move off a dead edge: the first scan to the next edge (its ack, or a later
         # one's, ends the prior the scans carry from the dead edge's unanswered ones)
         self._prior_from: int | None = None
@@ -135,7 +140,7 @@ class PoseKeeper:
             self.pose = (pose, 1.0)
             # the prior of the next edge's first scans: those read while its attach was under way
             # are after the poses it hands over (``attached`` starts it, that edge's ack ends it)
-            self._local = (reading.seq, pose, odo.motion)
+            self._local = (reading.seq, pose, odo.motion, True)
         return True
 
     def attached(self, reading: Reading, target: tuple[str, int]) -> tuple[np.ndarray, float] | None:
@@ -166,7 +171,7 @@ class PoseKeeper:
                 newest = self._begin(reading.seq, f"edge {previous[0]} gone")
                 if newest is not None:
                     with self.lock:
-                        self._local, self._prior_from = (*newest, odo.motion), reading.seq
+                        self._local, self._prior_from = (*newest, odo.motion, False), reading.seq
                 odo.end()
         with self.lock:
             answered = self._bridge_from is None
@@ -185,20 +190,27 @@ class PoseKeeper:
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         self.bridged += 1
         with self.lock:
-            self._local = (reading.seq, pose, odo.motion)
+            self._local = (reading.seq, pose, odo.motion, False)
         return pose, cpu
 
-    def prior_for(self, seq: int) -> tuple[int, np.ndarray] | None:
-        """What scan ``seq`` carries to the edge (``Scan.prior``): the newest scan the local
-        odometry registered in the last bridge (``seq`` itself while bridging), its pose and the
-        odometry's motion per period then, (prior_seq, (2, 4, 4)); None once the edge has acked a
-        scan of that bridge, or when it is ``MAX_GAP`` scans old. The edge uses it only after
-        scans it missed."""
+    def prior_for(self, seq: int, reads: int = max(wire.READS)) -> tuple[int, np.ndarray, int] | None:
+        """What scan ``seq`` carries to an edge that reads codec version ``reads``
+        (``Scan.prior``): the newest scan the local odometry registered in the last bridge
+        (``seq`` itself while bridging), or with no edge while the attach was under way, its pose
+        and the odometry's motion per period then, and the frame it is in (``Scan.prior_frame``:
+        0 the answers of the edge it goes to, 1 the poses the attach handed over; -1, not said,
+        to an edge that reads less than 11, which gets no prior of a scan read with no edge),
+        (prior_seq, (2, 4, 4), frame); None once the edge has acked a scan of that bridge (or
+        after the attach), or when it is ``MAX_GAP`` scans old. The edge uses it only after scans
+        it missed."""
         with self.lock:
             local = self._local
             if local is None or seq - local[0] >= MAX_GAP:
                 return None
-            return local[0], np.stack([local[1], local[2]])
+            if reads < 11:
+                return None if local[3] else (local[0], np.stack([local[1], local[2]]), -1)
+            frame = 0 if self._frame is not None and self._frame == self._target else 1
+            return local[0], np.stack([local[1], local[2]]), frame
 
     def book_bridged(self, seq: int, pose: np.ndarray, cpu: float) -> None:
         """The local pose of a scan sent (or dropped at source) while bridging."""
@@ -216,6 +228,11 @@ class PoseKeeper:
         cp, mine = self.fleet.checkpoint, odo.snapshot().checkpoint
         if mine is not None and (cp is None or mine.seq > cp.seq):
             cp = mine
+        # the period's frame is its checkpoint's map's: an edge's answers under its epoch, or the
+        # frame the robot's own checkpoints are in (the last period's)
+        frame = (cp.edge, cp.epoch) if cp is not None and cp.edge else self._frame if cp is not None else None
+        with self.lock:
+            self._frame = frame
         with self.lock:
             newest = self._newest_poses(cp.seq if cp is not None else -1)
             posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}

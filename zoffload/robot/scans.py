@@ -115,7 +115,7 @@ class _Outgoing:
     cpu_loop: float  # seconds of the loop thread's CPU for this scan
     edge: str = ""
     epoch: int = 0
-    prior: tuple[int, np.ndarray] | None = None  # the robot's own estimate (bridging): ``Scan.prior``
+    prior: tuple[int, np.ndarray, int] | None = None  # the robot's own estimate: ``Scan.prior`` and its frame
     held: tuple[float, str] | None = None  # the window was full: (robot clock, the window's reason)
 
 
@@ -356,7 +356,7 @@ class ScanStreamer:
             self.ledger.handed_off(reading.seq, record)
         prior = None  # the robot's own estimate, for an edge that missed scans (reads codec 5)
         if self.poses is not None and self.fleet_state is not None and self.fleet_state.reads(target[0]) >= 5:
-            prior = self.poses.prior_for(reading.seq)
+            prior = self.poses.prior_for(reading.seq, self.fleet_state.reads(target[0]))
         out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop, *target, prior,
                         held)
         replaced = self.sender.offer(out)

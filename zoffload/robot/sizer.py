@@ -214,15 +214,17 @@ def finish(sized: Sized, zstd_level: int = 1) -> bool:
 
 def scan_message(sized: Sized, *, robot: str, seq: int, send_stamp: float, capture_stamp: float,
                  voxel_max: float, max_range: float, n_raw: int, skipped: int = 0, edge: str = "",
-                 epoch: int = 0, prior: tuple[int, np.ndarray] | None = None) -> wire.Scan:
+                 epoch: int = 0, prior: tuple[int, np.ndarray, int] | None = None) -> wire.Scan:
     """The wire message of a finished scan; ``edge`` and ``epoch``: the robot's assignment ("" and
     0 without the attach protocol); ``prior``: the robot's own estimate (prior_seq, its pose and
-    motion per period (2, 4, 4); only for an edge that reads codec version 5)."""
+    motion per period (2, 4, 4), its frame or -1; only for an edge that reads codec version 5, the
+    frame for one that reads 11)."""
     common: dict[str, object] = dict(
         robot=robot, seq=seq, send_stamp=send_stamp, capture_stamp=capture_stamp, voxel=sized.voxel,
         voxel_max=max(voxel_max, sized.voxel), max_range=max_range, n_raw=n_raw, skipped=skipped,
         time_span=sized.time_span, edge=edge, epoch=epoch,
-        prior_seq=prior[0] if prior is not None else -1, prior=prior[1] if prior is not None else None)
+        prior_seq=prior[0] if prior is not None else -1, prior=prior[1] if prior is not None else None,
+        prior_frame=prior[2] if prior is not None else -1)
     if sized.coding == "f32":
         assert sized.points is not None
         return wire.Scan(**common, points=sized.points,  # type: ignore[arg-type]

@@ -479,7 +479,14 @@ def test_a_robots_estimate_from_a_slow_attach_is_moved_as_its_handed_over_poses_
         assert m.backfilled == back - lost and m.last_seq == back - 1
         if not moved:
             m._handover = None  # as before: the estimate taken in the frame it was sent in
-        assert m.predict_from(live, live - 1, *prior, contest=True)
+        else:  # an older robot's (frame not said): moved too, the one as sent another guess
+            assert m.predict_from(live, live - 1, *prior, contest=True)
+            assert m._prior is not None and m._prior[4] is not None and m._prior[4][0] == "prior_unmoved"
+            unsaid = m._prior[2]
+            assert np.linalg.norm(unsaid[:3, 3] - prior[0][:3, 3]) > 3.0
+        assert m.predict_from(live, live - 1, *prior, contest=True, frame=1)  # the robot says (v11)
+        if moved:
+            assert m._prior is not None and m._prior[4] is None and np.allclose(m._prior[2], unsaid)
         regs = [m.register(i, voxel_downsample(raw[i].points, 0.1)) for i in range(live, live + 3)]
         runs[moved] = ([error(r.pose, i) for r, i in zip(regs, range(live, live + 3), strict=True)],
                        regs[0].gap_motion)
@@ -490,6 +497,9 @@ def test_a_robots_estimate_from_a_slow_attach_is_moved_as_its_handed_over_poses_
             assert m.predict_from(live + 5, live + 4, pose, robot.odometry.last_delta, contest=True)
             assert m._prior is not None and np.array_equal(m._prior[2], pose)
             assert m._prior[4] is not None and m._prior[4][0] == "prior_moved"
+            # the robot says which (v11): its answers' frame taken as sent, no other guess
+            assert m.predict_from(live + 5, live + 4, pose, robot.odometry.last_delta, contest=True, frame=0)
+            assert m._prior is not None and np.array_equal(m._prior[2], pose) and m._prior[4] is None
     (errors, kept), (unmoved, _) = runs[True], runs[False]
     assert max(errors) < 0.25 and kept == "prior", (errors, kept)
     assert min(unmoved) > 1.0, unmoved

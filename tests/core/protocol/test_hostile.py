@@ -260,7 +260,7 @@ def test_attach_and_map_poses_are_rigid_motions_too() -> None:
 def test_a_scan_carries_the_robots_prior_as_version_5_and_only_whole(monkeypatch: pytest.MonkeyPatch) -> None:
     """Version 5: a scan with the robot's own pose and motion (sent only to an edge that said it
     reads 5); a scan without one still goes as version 2, and a prior that is partial, from a
-    later scan or not rigid is refused."""
+    later scan or not rigid is refused. Version 11: the prior's frame, only with a prior."""
     plain = wire.decode(valid_messages()["scan_f32"], expect=wire.Scan)
     obj = msgpack.unpackb(wire.encode(plain), raw=False)
     assert obj["v"] == 2 and "prior" not in obj and "prior_seq" not in obj and plain.prior is None
@@ -288,6 +288,25 @@ def test_a_scan_carries_the_robots_prior_as_version_5_and_only_whole(monkeypatch
     obj["prior"]["data"] = skewed.tobytes()
     with pytest.raises(wire.WireError, match="rigid"):
         wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Scan)
+    # Version 11: the prior's frame (1: the poses the robot's attach handed over); only with a prior
+    framed = dataclasses.replace(with_prior, prior_frame=1)
+    obj = msgpack.unpackb(wire.encode(framed), raw=False)
+    assert obj["v"] == 11 and obj["prior_frame"] == 1
+    assert wire.decode(wire.encode(framed), expect=wire.Scan).prior_frame == 1
+    assert wire.decode(wire.encode(with_prior), expect=wire.Scan).prior_frame == -1  # not said
+    with pytest.raises(wire.WireError, match="frame of a prior"):
+        dataclasses.replace(plain, prior_frame=0)
+    for bad, match in (({"prior_frame": 2}, "prior_frame"), ({"prior_frame": True}, "type"),
+                       ({"prior_seq": -1, "prior": None}, "frame of a prior")):
+        obj = {**msgpack.unpackb(wire.encode(framed), raw=False), **bad}
+        if obj["prior"] is None:
+            del obj["prior"]
+        with pytest.raises(wire.WireError, match=match):
+            wire.decode(msgpack.packb(obj, use_bin_type=True), expect=wire.Scan)
+    monkeypatch.setattr(wire, "READS", tuple(range(1, 11)))  # a version-10 build
+    with pytest.raises(wire.WireError, match="codec version 11"):
+        wire.decode(wire.encode(framed), expect=wire.Scan)
+    assert wire.decode(wire.encode(with_prior), expect=wire.Scan).prior_seq == 2
     monkeypatch.setattr(wire, "READS", (1, 2, 3, 4))  # a version-4 build
     assert wire.decode(wire.encode(plain), expect=wire.Scan).seq == 3
     with pytest.raises(wire.WireError, match="codec version 5"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -85,6 +87,7 @@ def test_overdue_acks_bridge_with_local_poses_and_an_ack_ends_it(edge_run: tuple
 
     src, mapper, cp = edge_run
     fleet, ask, ledger, lock, odo, keeper = _attached_keeper(edge_run)  # the edge's checkpoint after scan 29
+    fleet.checkpoint = dataclasses.replace(cp, epoch=ask[1])  # made under this attach: the edge's frame
 
     def scan(i: int) -> tuple[np.ndarray, float] | None:
         reading = Reading(i, src.read(i), time.time())
@@ -107,6 +110,8 @@ def test_overdue_acks_bridge_with_local_poses_and_an_ack_ends_it(edge_run: tuple
     # What the scans carry to the edge (``Scan.prior``): this pose and the local motion per scan
     got = keeper.prior_for(34)
     assert got is not None and got[0] == 34 and keeper.prior_for(34 + 50) is None  # too old then
+    assert got[2] == 0  # begun from this edge's checkpoint under this attach: in its frame (version 11)
+    assert keeper.prior_for(34, reads=10)[2] == -1  # an older edge: not said, the bridge's prior still sent
     prior = got[1]
     assert prior.shape == (2, 4, 4) and np.array_equal(prior[0], bridged[0])
     step = np.linalg.inv(mapper.poses[33]) @ mapper.poses[34]
@@ -201,6 +206,8 @@ def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_until_it_a
         assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge2", 2)) is None
         got = keeper.prior_for(i)
         assert got is not None and got[0] == 33 and np.array_equal(got[1][0], ledger.poses[33])
+        assert got[2] == 1  # in the frame of the poses the attach handed over (version 11)
+        assert keeper.prior_for(i, reads=10) is None  # an older edge could not tell that frame
     assert not odo.active  # edge2 is not overdue: no bridge, the odometry's period is over
     assert np.linalg.norm(got[1][0][:3, 3] - mapper.poses[33][:3, 3]) < 0.5
     with lock:
@@ -261,6 +268,7 @@ def test_a_move_in_the_middle_of_a_bridge_ends_it_and_the_new_edge_gets_its_own(
     moved = ("edge2", ask[1] + 1)
     assert scan(32, moved) is not None  # edge2 overdue as well: a bridge of its own
     assert keeper.metrics()["bridges"] == 2 and keeper.prior_for(32)[0] == 32
+    assert keeper.prior_for(32)[2] == 1  # begun from edge1's checkpoint: not edge2's frame
     # edge2 answers, but nothing of its bridge yet: the bridge and its estimate go on
     fleet.on_ack(ask[0], ask[1], "ok", time.monotonic(), in_flight=0)
     assert scan(33, moved) is not None and keeper.prior_for(33)[0] == 33
