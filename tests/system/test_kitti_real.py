@@ -22,6 +22,9 @@ pytestmark = [pytest.mark.system, pytest.mark.realdata]
 pytest.importorskip("kiss_icp")
 
 
+# -m slow: tests/system/test_ros2.py::test_kitti360_bag_through_the_daemons_maps_as_the_folder keeps
+# real KITTI-360 scans through both daemons in the default run
+@pytest.mark.slow
 def test_kitti360_scans_through_the_daemons(kitti_dir: Path, free_port: int, tmp_path: Path) -> None:
     with client(free_port) as s:
         edge = start_edge(s, edge_args(free_port, "--map-dir", str(tmp_path / "edge")), tmp_path / "edge.log")

@@ -237,6 +237,8 @@ def test_collision_flooding_of_the_global_map_costs_what_random_points_cost(tmp_
             assert proc.sigint() == 0, proc.text()
 
 
+# -m slow: tests/daemon/edge/test_admission.py keeps robots beyond max_robots refused without state
+@pytest.mark.slow
 def test_5000_fake_robot_ids_cost_no_threads_and_a_real_robot_keeps_its_acks(tmp_path: Path,
                                                                                free_port: int) -> None:
     """Was: 5,000 fake ids in 5.6 s: 5.2 GB RSS, 3,360 threads, and a real robot 0 of 15 scans acked."""

@@ -89,6 +89,8 @@ def test_unauthenticated_clients_are_refused(free_port: int, tmp_path: Path) -> 
         assert d.stop() == 0
 
 
+# -m slow: the linked-routers test keeps the same forgeries refused through TLS + ACL in the default run
+@pytest.mark.slow
 def test_a_robot_identity_cannot_publish_for_another_robot_or_answer_as_an_edge(
         free_port: int, tmp_path: Path) -> None:
     d = deploy(tmp_path, free_port, ["robot1", "robot2"], ["edge1"])

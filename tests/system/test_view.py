@@ -117,6 +117,8 @@ def test_the_edge_serves_a_live_view_that_renders_in_a_browser(free_port: int, t
     assert set(RECORDED) <= set(got), sorted(got)
 
 
+# -m slow: the browser test records a real run's entities, tests/core/lab/view the view's own session
+@pytest.mark.slow
 def test_zoffload_view_records_a_run_from_its_own_session(free_port: int, tmp_path: Path) -> None:
     rrd = tmp_path / "view.rrd"
     with client(free_port) as s:

@@ -202,9 +202,10 @@ def test_a_frozen_edge_is_seen_gone_when_zenoh_lets_the_held_put_go(
         + "\n".join([line for line in edge.text().splitlines() if " DEBUG " not in line][-20:]))
 
 
-# (through the emulated link: -m slow; tests/core/robot/test_encoding.py keeps JPEG where a trial
-# frame is slow, without the link)
-@pytest.mark.parametrize("mbps", [None, pytest.param(40, marks=pytest.mark.slow)])
+# (-m slow, both: tests/core/robot/test_encoding.py keeps the auto trial, raw where a frame is
+# fast and JPEG where it is slow, without the link; test_frames_shrunk_... a process's resize)
+@pytest.mark.slow
+@pytest.mark.parametrize("mbps", [None, 40])
 def test_auto_encoding_sends_raw_frames_where_the_link_carries_them_and_jpeg_where_not(
         free_port: int, tmp_path: Path, coco_dir: Path, models_dir: Path, mbps: int | None) -> None:
     """``encoding: auto`` through a real link: on loopback a trial raw frame takes the link a few ms
@@ -292,6 +293,9 @@ def test_frames_shrunk_to_the_edge_detector_input_get_the_boxes_of_the_whole_fra
     assert compared >= 3  # persons were found and compared, in camera pixels (x up to 848)
 
 
+# -m slow: the fallback test [dispatch] and tests/daemon/robot/test_camera.py keep the dispatcher's
+# buckets in the default run
+@pytest.mark.slow
 def test_dispatcher_counts_every_frame(free_port: int, tmp_path: Path, coco_dir: Path,
                                       models_dir: Path) -> None:
     with client(free_port) as s:
