@@ -226,7 +226,8 @@ class Scan(Message):
     # Version 11: the frame the prior is in, as the robot knows it: 1 that of the poses it handed
     # over with its attach to this edge (its local odometry began from its own checkpoint or
     # another edge's: the edge moves it as it moved those), 0 that of this edge's answers (began
-    # from this edge's checkpoint under the scan's epoch); -1 not said (an older robot)
+    # from this edge's checkpoint under the scan's epoch); -1 not said (an older robot, or one whose
+    # odometry began from a checkpoint and a pose in different frames)
     prior_frame: int = _num(-1, lo=-1, hi=1, since=11)
 
     def __post_init__(self) -> None:

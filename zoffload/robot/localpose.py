@@ -25,7 +25,11 @@ the edge predicts from it, moved by the correction it found when it registered t
 backfill, as it moved the handed-over poses (mapping/mapper.py ``predict_from``). They carried
 none before (the robot's pose, drifted, could have undone that correction), and an edge carried
 by its backfill to the scan before the robot reversed (KITTI-360 replayed ping-pong) stretched its
-motion over the scans read during the attach: 7.4 m off.
+motion over the scans read during the attach: 7.4 m off. Every prior says its frame
+(``Scan.prior_frame``, codec version 11, ``prior_for``): that of the edge's answers when the
+odometry's period began from that edge's checkpoint under the current attach, else that of the
+poses the attach handed over (a bridge begun from the robot's own checkpoint right after an
+attach is in it too); an edge that reads less gets no prior of a scan read with no edge.
 
 Either way a period starts from the freshest checkpoint (the edge's or our own) and the newest
 poses the robot has after it (the edge's acked ones, or its own of an earlier period), and first
@@ -55,6 +59,7 @@ from zoffload.robot.sensor import Reading
 
 log = logging.getLogger("zoffload.robot.localpose")
 
+UNKNOWN_FRAME = ("", -1)  # a period whose checkpoint and first pose are in different frames
 HANDOVER_POSES = 64  # the robot's newest scan poses an attach may hand over (those after its checkpoint)
 
 
@@ -85,7 +90,7 @@ class PoseKeeper:
         # no edge), for ``prior_for``
         self._local: tuple[int, np.ndarray, np.ndarray, bool] | None = None
         # The frame the local odometry's period is in: that of an edge's answers under an epoch
-        # (it began from that edge's checkpoint), or None (the robot's own, or none)
+        # (it began from that edge's checkpoint), None (the robot's own, or none), or UNKNOWN_FRAME
         self._frame: tuple[str, int] | None = None
         # After a move off a dead edge: the first scan to the next edge (its ack, or a later
         # one's, ends the prior the scans carry from the dead edge's unanswered ones)
@@ -209,7 +214,8 @@ class PoseKeeper:
                 return None
             if reads < 11:
                 return None if local[3] else (local[0], np.stack([local[1], local[2]]), -1)
-            frame = 0 if self._frame is not None and self._frame == self._target else 1
+            frame = (-1 if self._frame == UNKNOWN_FRAME
+                     else 0 if self._frame is not None and self._frame == self._target else 1)
             return local[0], np.stack([local[1], local[2]]), frame
 
     def book_bridged(self, seq: int, pose: np.ndarray, cpu: float) -> None:
@@ -228,14 +234,20 @@ class PoseKeeper:
         cp, mine = self.fleet.checkpoint, odo.snapshot().checkpoint
         if mine is not None and (cp is None or mine.seq > cp.seq):
             cp = mine
-        # the period's frame is its checkpoint's map's: an edge's answers under its epoch, or the
-        # frame the robot's own checkpoints are in (the last period's)
-        frame = (cp.edge, cp.epoch) if cp is not None and cp.edge else self._frame if cp is not None else None
-        with self.lock:
-            self._frame = frame
         with self.lock:
             newest = self._newest_poses(cp.seq if cp is not None else -1)
             posed = {h.seq for h in odo.ring if h.seq in self.ledger.poses}
+            # The period's frame: its checkpoint's map's (an edge's answers under its epoch, or the
+            # frame the robot's own checkpoints are in: the last period's), when the pose it begins
+            # from is in the same one (an edge's answer under that epoch, or a local pose of the
+            # last period); else not known (the edge contests both). No checkpoint: the pose's.
+            frame = None if cp is None else (cp.edge, cp.epoch) if cp.edge else self._frame
+            if newest:
+                rec = self.ledger.records.get(newest[-1][0], {})
+                by = ((str(rec.get("edge")), int(rec.get("epoch") or 0)) if rec.get("pose_source") == "edge"
+                      else self._frame)
+                frame = by if cp is None else frame if by == frame else UNKNOWN_FRAME
+            self._frame = frame
         odo.begin(cp, newest)
         caught = odo.catch_up(seq, posed)
         for s, pose, cpu in caught:

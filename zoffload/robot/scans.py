@@ -355,8 +355,9 @@ class ScanStreamer:
         with self._lock:
             self.ledger.handed_off(reading.seq, record)
         prior = None  # the robot's own estimate, for an edge that missed scans (reads codec 5)
-        if self.poses is not None and self.fleet_state is not None and self.fleet_state.reads(target[0]) >= 5:
-            prior = self.poses.prior_for(reading.seq, self.fleet_state.reads(target[0]))
+        reads = self.fleet_state.reads(target[0]) if self.fleet_state is not None else 0
+        if self.poses is not None and reads >= 5:
+            prior = self.poses.prior_for(reading.seq, reads)
         out = _Outgoing(reading.seq, reading.capture_stamp, sized.n_valid, sized, cpu_loop, *target, prior,
                         held)
         replaced = self.sender.offer(out)

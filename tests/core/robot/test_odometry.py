@@ -360,3 +360,30 @@ def test_the_backfill_ring_spreads_over_an_outage_longer_than_it() -> None:
     ring.clear()
     ring.add(Backfilled(7, 0.0, 1, np.zeros((1, 3), np.float32), 0.8))
     assert [b.seq for b in ring.scans()] == [7] and ring.stride == 1
+
+
+@pytest.mark.parametrize("same_epoch", [True, False])
+def test_a_bridge_says_its_priors_frame_only_when_its_checkpoint_and_first_pose_agree(
+        edge_run: tuple, same_epoch: bool) -> None:
+    """The edge answered scans 30-33 under this attach and its acks are then overdue: the bridge
+    begins from the newest checkpoint and its pose of scan 33. When that checkpoint is the same
+    edge's under this attach, its priors are in the edge's frame (``Scan.prior_frame`` 0); when it
+    is one from before the attach (here the same edge under an earlier epoch), the map it
+    registers against and the pose it starts from are in different frames, and the prior says it
+    does not know (-1: the edge tries both)."""
+    import time
+
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet, ask, ledger, lock, odo, keeper = _attached_keeper(edge_run)
+    fleet.checkpoint = dataclasses.replace(cp, epoch=ask[1] if same_epoch else ask[1] - 1)
+    for i in range(30, 34):
+        assert keeper.attached(Reading(i, src.read(i), time.time()), ask) is None
+        ledger.handed_off(i, {"capture_stamp": time.time(), "edge": ask[0], "epoch": ask[1]})
+        ledger.records[i]["pose_source"] = "edge"  # answered, as ``ScanLedger.acked`` books it
+        ledger.poses[i] = mapper.poses[i]
+    fleet.on_sent(time.monotonic() - 0.5)
+    assert keeper.attached(Reading(34, src.read(34), time.time()), ask) is not None
+    got = keeper.prior_for(34)
+    assert got is not None and got[0] == 34 and got[2] == (0 if same_epoch else -1)
