@@ -203,8 +203,9 @@ class PoseKeeper:
         (``Scan.prior``): the newest scan the local odometry registered in the last bridge
         (``seq`` itself while bridging), or with no edge while the attach was under way, its pose
         and the odometry's motion per period then, and the frame it is in (``Scan.prior_frame``:
-        0 the answers of the edge it goes to, 1 the poses the attach handed over; -1, not said,
-        to an edge that reads less than 11, which gets no prior of a scan read with no edge),
+        0 the answers of the edge it goes to, 1 the poses the attach handed over, -1 not known
+        (the period's checkpoint and first pose in different frames); -1, not said, to an edge
+        that reads less than 11, which gets no prior of a scan read with no edge),
         (prior_seq, (2, 4, 4), frame); None once the edge has acked a scan of that bridge (or
         after the attach), or when it is ``MAX_GAP`` scans old. The edge uses it only after scans
         it missed."""
