@@ -219,12 +219,12 @@ def scan_message(sized: Sized, *, robot: str, seq: int, send_stamp: float, captu
     0 without the attach protocol); ``prior``: the robot's own estimate (prior_seq, its pose and
     motion per period (2, 4, 4), its frame or -1; only for an edge that reads codec version 5, the
     frame for one that reads 11)."""
+    prior_seq, prior_pose, prior_frame = prior if prior is not None else (-1, None, -1)
     common: dict[str, object] = dict(
         robot=robot, seq=seq, send_stamp=send_stamp, capture_stamp=capture_stamp, voxel=sized.voxel,
         voxel_max=max(voxel_max, sized.voxel), max_range=max_range, n_raw=n_raw, skipped=skipped,
         time_span=sized.time_span, edge=edge, epoch=epoch,
-        prior_seq=prior[0] if prior is not None else -1, prior=prior[1] if prior is not None else None,
-        prior_frame=prior[2] if prior is not None else -1)
+        prior_seq=prior_seq, prior=prior_pose, prior_frame=prior_frame)
     if sized.coding == "f32":
         assert sized.points is not None
         return wire.Scan(**common, points=sized.points,  # type: ignore[arg-type]
