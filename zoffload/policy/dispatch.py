@@ -75,6 +75,20 @@ its stall fitted in the work the edge path's bottleneck had queued, but the stal
 cannot finish in time"). A slow local measurement drifts back towards the detector's
 CPU time while it is idle (half-life ``recover``), so one slow spell does not idle it for good.
 
+Overflow (``overflow``, since 2026-12-07): that rule left a stalling detector idle while the edge
+path was full and the edge, serving its newest frame, dropped one of ours for every frame it could
+not keep up with (an edge at 55-65 ms a frame against the camera's 40 ms: 200-360 of 1250 a run),
+and a fixed ratio 0.9, detecting every tenth frame on the robot, finished more frames. So a
+stalling detector also takes a frame the edge path is too full to take (it holds its depth), one
+every ``overflow_gap`` seconds at most: spaced out, a quarter-core robot's detection runs within
+one or two quota periods (35 ms against 107 ms back to back) and answers fresh. The gap is 0.4 s
+(ratio 0.9's spacing at 25 Hz) at first; after each local detection it grows 1.5 times when the
+detection stalled the robot (wall time beyond CPU time by half a camera period) and shrinks to
+0.9 times when it did not, within 0.1-2 s. On a host slow enough that every detection stalls,
+the gap stays at 2 s and the rule takes a few frames a run; a gap held at 0.4 s at most, tried on
+the tuning half, scored no better (docs/perception-log.md: "Overflow frames for a stalling
+detector").
+
 Losses: an edge frame unanswered within the reply timeout blocks the edge until an answer comes and
 shrinks the window of frames in flight by one, once per outage (the frames that time out while it
 is blocked went into the same outage: each counts as a loss, none shrinks the window again; it
@@ -99,6 +113,8 @@ import numpy as np
 
 from zoffload.policy.agreement import Agreement
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
+
+OVERFLOW_GAP = (0.1, 2.0)  # s: the range of the overflow frames' spacing
 
 
 class Ewma:
@@ -168,6 +184,8 @@ class Dispatcher(Strategy):
     refresh_period: float = 1.0  # s without an edge frame before a copy measures the edge
     retry_period: float = 0.2  # s between frames (or copies) sent to a blocked edge
     cpu_share: float = 1.0  # of the CPU quota the process may fill
+    overflow: bool = True  # a stalling local detector takes, spaced, frames the full edge path cannot
+    overflow_gap: float = 0.4  # s between such frames at least: grows while they stall the robot
     max_in_flight: int = 4  # unanswered edge frames (and copies) at most
     slack: float = 1.5  # camera periods a frame may wait for the local detector to start it
     recover: float = 1.0  # s: half-life of a slow local measurement while the detector is idle
@@ -200,6 +218,7 @@ class Dispatcher(Strategy):
     _local_results: int = 0
     spares: int = 0  # frames sent beyond the depth instead of being skipped
     retries: int = 0  # frames sent to a blocked edge instead of being skipped
+    overflows: int = 0  # frames a stalling local detector took because the edge path was full
 
     def __post_init__(self) -> None:
         self.window = float(self.max_in_flight)
@@ -351,9 +370,16 @@ class Dispatcher(Strategy):
         # A local detector that stalls the robot (beyond half a camera period, the soonest the next
         # frame could need the sender) takes only frames the edge cannot finish in time
         local_fits = f_edge > deadline or self.stall(st.now) <= 0.5 * period
+        # ... or, spaced by ``overflow_gap``, a frame the edge path is too full to take (it would
+        # go as a spare, if at all, and the edge serving its newest frame would drop one of them)
+        overflow = (not local_fits and self.overflow and not st.local_busy and not st.local_waiting
+                    and st.now - st.local_last_start >= self.overflow_gap
+                    and len(st.edge_sends) >= self.depth(st.now))
         f_local, start = self.local_finish(st)
-        if f_local <= deadline and start < st.now + self.slack * period and local_fits:
+        if f_local <= deadline and start < st.now + self.slack * period and (local_fits or overflow):
             options.append((st.local_waiting, f_local + self.bias(period), LOCAL))
+        else:
+            overflow = False
         # Just in time: the edge path takes a frame while it holds fewer than its depth; beyond
         # that, only a frame the local detector does not take either, while the window has room
         # (a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
@@ -384,6 +410,8 @@ class Dispatcher(Strategy):
         side = min(options)[2]
         if side == EDGE:
             return self._to_edge(st)
+        if overflow:
+            self.overflows += 1
         if retry or (st.edge_available and not st.edge_sends and not st.send_waiting
                      and since >= self.refresh_period):
             self._last_edge_send = st.now
@@ -418,6 +446,13 @@ class Dispatcher(Strategy):
             self.local_service.add(service if service is not None else rtt)
         self._local_results += 1
         self.local_cpu.add(cpu)
+        if self._local_results > 1 and service is not None and cpu is not None:
+            # Overflow frames spaced so a detection does not stall the robot: a detection whose
+            # wall time passed its CPU time by half a camera period (it waited for the CPU quota)
+            # spaces them more, one that did not, less
+            period = self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
+            grow = 1.5 if service - cpu > 0.5 * period else 0.9
+            self.overflow_gap = min(max(self.overflow_gap * grow, OVERFLOW_GAP[0]), OVERFLOW_GAP[1])
         self._local_fresh = True  # timed at the next decision (the hooks carry no clock)
 
     def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:

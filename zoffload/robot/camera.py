@@ -495,7 +495,8 @@ def camera_offloader(settings: RobotSettings, stop: StopSignal, quota_mode: str 
         detector = Detector(p.local_model, p.local_model_path, threads=p.local_threads)
     dispatch = ({"max_age": p.max_age, "local_bias": p.local_bias, "learn_bias": p.learn_bias,
                  "refresh_period": p.refresh_period,
-                 "retry_period": p.retry_period, "base_period": p.base_period, "cpu_share": p.cpu_share}
+                 "retry_period": p.retry_period, "base_period": p.base_period, "cpu_share": p.cpu_share,
+                 "overflow": p.overflow}
                 if p.strategy == "dispatch" else {})
     strategy = make_strategy(p.strategy, p.cpu_max, p.bw_max_mbps or math.inf, p.max_in_flight, **dispatch)
     rules = FallbackRules(reply_timeout=p.reply_timeout, fallback_losses=p.fallback_losses,

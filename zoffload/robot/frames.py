@@ -484,6 +484,8 @@ class FrameBook:
             "other": {k: v for k, v in self.counters.items() if k not in bal},
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
             "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
+            "local_overflows": getattr(self.strategy, "overflows", None),  # dispatch's, the edge path full
+            "overflow_gap_s": getattr(self.strategy, "overflow_gap", None),  # their spacing at the end
             "edge_drains": getattr(self.strategy, "drains", None),  # dispatch's drains to measure the base
             "local_bias": getattr(self.strategy, "bias_summary", lambda: None)(),  # dispatch's, learnt or set
             "encodings": self.encodings.summary(),

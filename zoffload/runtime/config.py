@@ -289,6 +289,10 @@ class PerceptionSettings(_Strict):
         default=1.0, gt=0, le=1,
         description="dispatch: share of the CPU quota the robot fills; its local detector is paced within it",
     )
+    overflow: bool = Field(
+        default=True,
+        description="dispatch: a stalling local detector takes, spaced, frames the full edge path cannot",
+    )
     preview_period: float = Field(
         default=0.25, ge=0,
         description="seconds between viewer previews at most (only while a viewer subscribes); 0: none",

@@ -326,7 +326,9 @@ def test_a_robot_whose_detector_stalls_it_detects_only_what_the_edge_cannot_fini
     # two frames just sent, the local detector would finish sooner: the edge takes the frame
     assert d.decide(_st(now=t, capture=t, **queued)) == EDGE
     # the edge path's window full, the edge would still finish a frame in time: skipped, not local
+    # (without the overflow rule, below)
     full = tuple((t - 0.01 + 0.001 * k, 1e6) for k in range(4))
+    d.overflow = False
     assert d.decide(_st(now=t, capture=t, edge_sends=full, in_flight=4)) == SKIP
     # the edge stopped answering: the local detector takes the frames
     d.on_edge_timeout(0.5)
@@ -342,14 +344,61 @@ def test_a_robot_whose_detector_stalls_it_detects_only_what_the_edge_cannot_fini
     assert d.decide(_st(now=t + 5.0, capture=t + 5.0)) in (LOCAL, BOTH)
 
 
+def test_a_stalling_detector_takes_spaced_frames_the_full_edge_path_cannot() -> None:
+    """The edge path at its depth, the edge still in time: a stalling detector takes the frame
+    (the edge would drop one of its frames: it serves the newest) when its last frame started
+    ``overflow_gap`` ago or more, else the frame is a spare or skipped. The gap grows while such
+    detections stall the robot (wall time beyond CPU time by half a camera period) and shrinks
+    while they do not."""
+    def full(now: float, n: int = 4) -> dict[str, object]:  # n frames just sent
+        sends = tuple((now - 0.01 + 0.001 * k, 1e6) for k in range(n))
+        return {"now": now, "capture": now, "edge_sends": sends, "in_flight": n}
+
+    t = 0.5
+    d = _stalling(cpu=0.02)
+    # 0.4 s at first; the two detections _stalling measured stalled the robot: 0.9 s now
+    assert d.overflow and d.overflow_gap == pytest.approx(0.4 * 1.5 ** 2)
+    assert d.depth(t) == 3  # (four in flight: the window's spare among them)
+    # a camera at 25 Hz, the edge path always full: a frame to the robot every 0.9 s, the others
+    # skipped (the window is full, so no spare either); the detector busy 100 ms a frame
+    started, sides = -math.inf, []
+    for k in range(40):
+        now = t + 0.04 * k
+        side = d.decide(_st(**full(now), local_last_start=started, local_busy=now < started + 0.1))
+        sides.append(side)
+        if side == LOCAL:
+            started = now
+    ks = [k for k, side in enumerate(sides) if side == LOCAL]
+    assert ks[0] == 0 and len(ks) == 2 and 23 <= ks[1] <= 24  # 0.9 s apart
+    assert set(sides) == {LOCAL, SKIP} and d.overflows == 2
+    # in its depth the edge path takes the frame, as before: the rule is only for what it cannot
+    assert _stalling(cpu=0.02).decide(_st(**full(t, 2))) == EDGE
+    # a detection that stalled the robot (100 ms of wall for 20 ms of CPU) spaces them more ...
+    gap = d.overflow_gap
+    d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(1.5 * gap)
+    for _ in range(20):
+        d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(2.0)  # at most
+    # ... one that did not (a full core, or the quota's room), less, down to 0.1 s
+    for _ in range(60):
+        d.on_local_result(0.03, service=0.03, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(0.1)
+    # off: the frame is skipped, as before the rule
+    d = _stalling(cpu=0.02)
+    d.overflow = False
+    assert d.decide(_st(**full(t))) == SKIP and d.overflows == 0
+
+
 def test_dispatch_is_the_default_and_takes_its_settings() -> None:
     from zoffload.runtime.config import PerceptionSettings
 
     p = PerceptionSettings()
     assert p.strategy == "dispatch"
     d = make_strategy(p.strategy, max_in_flight=p.max_in_flight, max_age=p.max_age, local_bias=p.local_bias,
-                      refresh_period=p.refresh_period, retry_period=p.retry_period, cpu_share=p.cpu_share)
-    assert isinstance(d, Dispatcher) and d.max_age == p.max_age
+                      refresh_period=p.refresh_period, retry_period=p.retry_period, cpu_share=p.cpu_share,
+                      overflow=p.overflow)
+    assert isinstance(d, Dispatcher) and d.max_age == p.max_age and d.overflow is p.overflow is True
     assert d.window == p.max_in_flight and d.retry_period == p.retry_period
     with pytest.raises(ValueError, match="dispatch"):
         make_strategy("fastest")
