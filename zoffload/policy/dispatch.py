@@ -77,17 +77,21 @@ CPU time while it is idle (half-life ``recover``), so one slow spell does not id
 
 Overflow (``overflow``, since 2026-12-07): that rule left a stalling detector idle while the edge
 path was full and the edge, serving its newest frame, dropped one of ours for every frame it could
-not keep up with (an edge at 55-65 ms a frame against the camera's 40 ms: 200-360 of 1250 a run),
+not keep up with (an edge at 53-63 ms a frame against the camera's 40 ms: 239-365 of 1250 a run),
 and a fixed ratio 0.9, detecting every tenth frame on the robot, finished more frames. So a
 stalling detector also takes a frame the edge path is too full to take (it holds its depth), one
-every ``overflow_gap`` seconds at most: spaced out, a quarter-core robot's detection runs within
-one or two quota periods (35 ms against 107 ms back to back) and answers fresh. The gap is 0.4 s
-(ratio 0.9's spacing at 25 Hz) at first; after each local detection it grows 1.5 times when the
-detection stalled the robot (wall time beyond CPU time by half a camera period) and shrinks to
-0.9 times when it did not, within 0.1-2 s. On a host slow enough that every detection stalls,
-the gap stays at 2 s and the rule takes a few frames a run; a gap held at 0.4 s at most, tried on
-the tuning half, scored no better (docs/perception-log.md: "Overflow frames for a stalling
-detector").
+every ``overflow_gap`` seconds at most (``overflows`` counts the frames so chosen; one may still
+be replaced in the detector's slot by the next). Spaced out, a quarter-core robot's detection can
+run within one or two quota periods: ratio 0.9's, 0.40 s apart, took 35 ms (median) in one run,
+the rule's without the spacing, 0.24 s apart, 107 ms; on a slower host both took 53-97 ms.
+``overflow_gap`` is 0.4 s (ratio 0.9's spacing at 25 Hz) until a detection is measured; after
+each local detection, whatever took it (an overflow frame, a frame the edge could not finish in
+time, fallback), it grows by a factor 1.5 when the detection stalled the robot (wall time beyond
+CPU time by half a camera period) and by 0.9 when it did not, within 0.1-2 s. The stall rule
+needs a measured detection first, so the first overflow frame comes after at least one such
+update. On a host slow enough that every detection stalls the gap ends at 2 s and the rule takes
+a few frames a run; a gap held at 0.4 s at most, tried on the tuning half, scored no better
+(docs/perception-log.md: "Overflow frames for a stalling detector").
 
 Losses: an edge frame unanswered within the reply timeout blocks the edge until an answer comes and
 shrinks the window of frames in flight by one, once per outage (the frames that time out while it
@@ -372,14 +376,14 @@ class Dispatcher(Strategy):
         local_fits = f_edge > deadline or self.stall(st.now) <= 0.5 * period
         # ... or, spaced by ``overflow_gap``, a frame the edge path is too full to take (it would
         # go as a spare, if at all, and the edge serving its newest frame would drop one of them)
-        overflow = (not local_fits and self.overflow and not st.local_busy and not st.local_waiting
-                    and st.now - st.local_last_start >= self.overflow_gap
-                    and len(st.edge_sends) >= self.depth(st.now))
+        take_overflow = (not local_fits and self.overflow and not st.local_busy and not st.local_waiting
+                         and st.now - st.local_last_start >= self.overflow_gap
+                         and len(st.edge_sends) >= self.depth(st.now))
         f_local, start = self.local_finish(st)
-        if f_local <= deadline and start < st.now + self.slack * period and (local_fits or overflow):
+        if f_local <= deadline and start < st.now + self.slack * period and (local_fits or take_overflow):
             options.append((st.local_waiting, f_local + self.bias(period), LOCAL))
         else:
-            overflow = False
+            take_overflow = False
         # Just in time: the edge path takes a frame while it holds fewer than its depth; beyond
         # that, only a frame the local detector does not take either, while the window has room
         # (a skipped frame scores nothing, one a frame time later nearly what a fresh one does,
@@ -410,7 +414,7 @@ class Dispatcher(Strategy):
         side = min(options)[2]
         if side == EDGE:
             return self._to_edge(st)
-        if overflow:
+        if take_overflow:  # (the edge path is full and the window too: LOCAL is the only option)
             self.overflows += 1
         if retry or (st.edge_available and not st.edge_sends and not st.send_waiting
                      and since >= self.refresh_period):
@@ -446,10 +450,12 @@ class Dispatcher(Strategy):
             self.local_service.add(service if service is not None else rtt)
         self._local_results += 1
         self.local_cpu.add(cpu)
-        if self._local_results > 1 and service is not None and cpu is not None:
-            # Overflow frames spaced so a detection does not stall the robot: a detection whose
+        if (self._local_results > 1 and service is not None and cpu is not None
+                and math.isfinite(service) and math.isfinite(cpu)):
+            # Overflow frames spaced so a detection does not stall the robot: any detection whose
             # wall time passed its CPU time by half a camera period (it waited for the CPU quota)
-            # spaces them more, one that did not, less
+            # spaces them more, one that did not, less (back-to-back detections, in fallback, count
+            # too: left so, docs/perception-log.md)
             period = self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
             grow = 1.5 if service - cpu > 0.5 * period else 0.9
             self.overflow_gap = min(max(self.overflow_gap * grow, OVERFLOW_GAP[0]), OVERFLOW_GAP[1])

@@ -485,7 +485,8 @@ class FrameBook:
             "edge_spares": getattr(self.strategy, "spares", None),  # dispatch's frames beyond its depth
             "edge_retries": getattr(self.strategy, "retries", None),  # dispatch's frames to a blocked edge
             "local_overflows": getattr(self.strategy, "overflows", None),  # dispatch's, the edge path full
-            "overflow_gap_s": getattr(self.strategy, "overflow_gap", None),  # their spacing at the end
+            "overflow_gap_s": (round(float(self.strategy.overflow_gap), 3)  # their spacing, at the end
+                               if hasattr(self.strategy, "overflow_gap") else None),
             "edge_drains": getattr(self.strategy, "drains", None),  # dispatch's drains to measure the base
             "local_bias": getattr(self.strategy, "bias_summary", lambda: None)(),  # dispatch's, learnt or set
             "encodings": self.encodings.summary(),
