@@ -321,6 +321,10 @@ class Dispatcher(Strategy):
         room = max(self.cpu_share * st.cpu_quota - others, 0.02 * st.cpu_quota)
         return st.local_last_start + cost / room
 
+    def camera_period(self) -> float:
+        """Seconds between camera frames as measured (25 Hz's 40 ms until two frames came)."""
+        return self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
+
     def bias(self, period: float) -> float:
         """Seconds sooner the local detector must finish to take a frame: ``local_bias``, or with
         ``learn_bias`` the learnt offset in camera frames (at the camera's period: the gap between
@@ -366,7 +370,7 @@ class Dispatcher(Strategy):
         if math.isnan(self.local_service.value) and not st.local_busy:
             return LOCAL
         deadline = (st.capture if math.isfinite(st.capture) else st.now) + self.max_age
-        period = self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
+        period = self.camera_period()
         # A side that would not start on this frame within a camera period would finish a later,
         # fresher frame just as soon: it does not take this one (just in time, not queued)
         options = []  # (kills a waiting frame, score, side)
@@ -456,8 +460,7 @@ class Dispatcher(Strategy):
             # wall time passed its CPU time by half a camera period (it waited for the CPU quota)
             # spaces them more, one that did not, less (back-to-back detections, in fallback, count
             # too: left so, docs/perception-log.md)
-            period = self.frame_period.value if math.isfinite(self.frame_period.value) else 0.04
-            grow = 1.5 if service - cpu > 0.5 * period else 0.9
+            grow = 1.5 if service - cpu > 0.5 * self.camera_period() else 0.9
             self.overflow_gap = min(max(self.overflow_gap * grow, OVERFLOW_GAP[0]), OVERFLOW_GAP[1])
         self._local_fresh = True  # timed at the next decision (the hooks carry no clock)
 
