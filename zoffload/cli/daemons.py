@@ -18,12 +18,9 @@ from zoffload.cli.flags import Spelling, add_settings_flags, flag_values, summar
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
 from zoffload.runtime.errors import ExitCode
 from zoffload.runtime.lifecycle import StopSignal
-from zoffload.runtime.loading import load_settings
+from zoffload.runtime.loading import EDGE_ENV, ROBOT_ENV, load_settings
 
 log = logging.getLogger("zoffload")
-
-ROBOT_ENV = "ZOFFLOAD_ROBOT__"
-EDGE_ENV = "ZOFFLOAD_EDGE__"
 
 # Flags are built from the settings models (zoffload.cli.flags): --key-name, --section.key-name.
 # These tables only keep the spellings the flags have always had. The session flags are the zenoh

@@ -29,7 +29,7 @@ from typing import Any
 
 from zoffload.lab.eval.detect_report import RUN_SETTINGS, run_label, run_settings
 from zoffload.lab.eval.detection import detection_metrics
-from zoffload.lab.runner import StartError, edge_apart_cores, frames_line, run_offload
+from zoffload.lab.runner import StartError, edge_apart_cores, environment_settings, frames_line, run_offload
 from zoffload.runtime.config import (
     DetectorSettings,
     EdgeSettings,
@@ -126,9 +126,11 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
 
 
 def _settings(exp: DetectExperiment) -> dict[str, Any]:
-    """What the run ran with besides link, strategy and images (detect_report's RUN_SETTINGS)."""
+    """What the run ran with besides link, strategy and images (detect_report's RUN_SETTINGS), the
+    settings ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables gave the daemons included."""
     return {"edge_model": exp.edge_model, "edge_threads": exp.edge_threads, "local_model": exp.local_model,
-            "extra": json.dumps(exp.extra, sort_keys=True, default=str), "edge_apart": exp.edge_apart}
+            "extra": json.dumps(exp.extra, sort_keys=True, default=str), "edge_apart": exp.edge_apart,
+            "environment": json.dumps(environment_settings(), sort_keys=True, default=str)}
 
 
 def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
 from zoffload.runtime.lifecycle import wait_in_slices
-from zoffload.runtime.loading import write_effective
+from zoffload.runtime.loading import EDGE_ENV, ROBOT_ENV, environment_values, write_effective
 from zoffload.runtime.maps import fetch_map
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
@@ -224,6 +224,15 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
             first = str(exc).splitlines()[0]
             print(f"start {attempt} of {START_ATTEMPTS} failed ({first}); again on other ports", flush=True)
     raise AssertionError("unreachable")
+
+
+def environment_settings(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The settings ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables set (``environ``, else
+    os.environ): the daemons a run starts inherit them over the settings the run writes, so a run's
+    row records them (``{"robot": {"perception": {"overflow": "false"}}}``; {} for none)."""
+    found = {"robot": environment_values(RobotSettings, ROBOT_ENV, environ),
+             "edge": environment_values(EdgeSettings, EDGE_ENV, environ)}
+    return {side: values for side, values in found.items() if values}
 
 
 def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,

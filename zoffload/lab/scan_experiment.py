@@ -32,7 +32,7 @@ from zoffload.edge.export import registered_backfill
 from zoffload.lab.eval.trajectory import trajectory_error
 from zoffload.lab.link.ceiling import stream_shares, stream_start
 from zoffload.lab.link.trace import Trace, load_trace
-from zoffload.lab.runner import edge_apart_cores, link_clock_start, run_offload
+from zoffload.lab.runner import edge_apart_cores, environment_settings, link_clock_start, run_offload
 from zoffload.robot.scanlog import RECORD_FIELDS, read_scan_rows
 from zoffload.runtime.config import EdgeSettings, RobotFleetSettings, RobotSettings
 from zoffload.runtime.errors import ConfigError
@@ -248,6 +248,7 @@ def run_scan_experiment(exp: ScanExperiment) -> dict[str, Any]:
 def _run_once(exp: ScanExperiment, link_seed: int | None = None) -> dict[str, Any]:
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
+    environment = environment_settings()  # (a variable naming no setting fails here, before the run)
     voxel = policy_voxel(exp.policy)
     trace = load_trace(exp.trace)
     is_sim = exp.scans == "sim"
@@ -264,6 +265,7 @@ def _run_once(exp: ScanExperiment, link_seed: int | None = None) -> dict[str, An
     else:
         row = _run_offload(exp, trace, voxel, rate, replay, max_scans, is_sim, source, out,
                            exp.seed if link_seed is None else link_seed)
+    row["environment"] = environment  # what ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* set ({} for nothing)
     (out / "results.json").write_text(json.dumps(row, indent=2))
     return row
 

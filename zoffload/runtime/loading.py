@@ -27,6 +27,10 @@ from zoffload.runtime.errors import ConfigError
 
 S = TypeVar("S", bound=BaseModel)
 
+# The daemons' environment prefixes: ZOFFLOAD_ROBOT__VOXEL=0.03, ZOFFLOAD_EDGE__MAPPER__QUEUE=4
+ROBOT_ENV = "ZOFFLOAD_ROBOT__"
+EDGE_ENV = "ZOFFLOAD_EDGE__"
+
 
 def unwrap_optional(annotation: Any) -> Any:
     """``X | None`` → ``X``; any other annotation unchanged."""

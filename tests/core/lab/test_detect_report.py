@@ -128,3 +128,41 @@ def test_a_resumed_sweep_runs_again_a_folder_made_with_another_link_seed(
     other = dataclasses.replace(plan[0], edge_model="yolox-nano")  # the same folder, another model
     de.run_or_reuse(other)
     assert ran == [1, 0]
+
+
+def test_settings_from_the_environment_are_recorded_and_make_runs_of_their_own(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ``ZOFFLOAD_ROBOT__*`` variable reaches the robot over the settings the run writes: the run's
+    row records it, the report keeps such runs apart and names the setting, and a resumed sweep
+    reuses a folder only under the same variables; a variable naming no setting fails up front."""
+    import zoffload.lab.detect_experiment as de
+    from zoffload.runtime.errors import ConfigError
+
+    monkeypatch.delenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", raising=False)
+    plain = de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path)))
+    assert plain["environment"] == "{}"
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "false")
+    off = de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path)))
+    assert json.loads(off["environment"]) == {"robot": {"perception": {"overflow": "false"}}}
+    runs = [dict(json.loads((_run(tmp_path / f"r{i}", "dispatch", 50.0 + i) / "results.json").read_text()),
+                 **settings) for i, settings in enumerate((plain, plain, off))]
+    rows = aggregate(runs)
+    assert sorted(r["n"] for r in rows) == [1, 2]
+    text = table(rows, "detect-capped", "0.25 core")
+    assert '(environment {"robot": {"perception": {"overflow": "false"}}})' in text
+    ran: list[str] = []
+    monkeypatch.setattr(de, "run_detect_experiment", lambda exp: ran.append(exp.out) or {"strategy": "x"})
+    monkeypatch.setattr(de, "summary_line", lambda row: "")
+    folder = tmp_path / "made_plain" / "run1"
+    (folder.parent).mkdir()
+    _run(folder, "dispatch", 50.0)
+    (folder / "results.json").write_text(json.dumps(dict(json.loads((folder / "results.json").read_text()),
+                                                         seed=0, **plain)))
+    exp = de.DetectExperiment(trace="detect-capped", strategy="dispatch", out=str(folder))
+    de.run_or_reuse(exp)
+    assert ran == [str(folder)]  # made without the variable: run again with it
+    monkeypatch.delenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW")
+    assert de.run_or_reuse(exp)["ap50_async"] == 50.0 and ran == [str(folder)]
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOWS", "false")
+    with pytest.raises(ConfigError, match="did you mean 'overflow'"):
+        de.run_or_reuse(exp)

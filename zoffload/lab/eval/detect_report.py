@@ -138,9 +138,11 @@ def row_name(strategy: str) -> str:
 
 # What a detection run ran with besides its link, strategy and images, and the defaults (the lab's
 # DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these,
-# but for the settings of RAN_BEFORE, which they ran as it says
+# but for the settings of RAN_BEFORE, which they ran as it says. ``environment``: the settings
+# ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* variables gave the daemons (JSON; recorded since 2026-12-07:
+# an older run shows none, though the overflow-off runs of that day had one, in their own folder)
 RUN_SETTINGS: dict[str, Any] = {"edge_model": "picodet-s", "edge_threads": 1, "local_model": "nanodet-m",
-                                "extra": "{}", "edge_apart": True}
+                                "extra": "{}", "edge_apart": True, "environment": "{}"}
 # a setting added after runs were made, and what a run that does not name it ran with: the edge
 # on the robot's cores (``edge_apart``, the default since 2026-12-06)
 RAN_BEFORE: dict[str, Any] = {"edge_apart": False}

@@ -213,8 +213,11 @@ def table_markdown(runs: list[dict[str, Any]]) -> str:
             spread = f" ± {100 * same[1]:.0f}" if same[1] is not None else ""
             same_text = f"{100 * same[0]:+.0f}{spread} %"
         short = sum(bool(m.get("cut_short")) for m in r.get("runs", [r]))
+        members = r.get("runs", [r])
+        env = {json.dumps(m["environment"], sort_keys=True) for m in members if m.get("environment")}
         name = (r["policy"] + (f" ({r['n']} runs)" if r["n"] > 1 else "")
-                + (f" ({short} cut short)" if short else ""))
+                + (f" ({short} cut short)" if short else "")
+                + "".join(f" (environment {e})" for e in sorted(env)))
         received = (_cell(r, "scans_received", ".0f") if r["n"] > 1 else str(r["scans_received"]))
         if _get(r, "scans_registered") is not None and r["policy"] != "local":  # (older results: not kept)
             received += f" ({_cell(r, 'scans_registered', '.0f')})"
