@@ -85,9 +85,10 @@ be replaced in the detector's slot by the next). Spaced out, a quarter-core robo
 run within one or two quota periods: ratio 0.9's, 0.40 s apart, took 35 ms (median) in one run,
 the rule's without the spacing, 0.24 s apart, 107 ms; on a slower host both took 53-97 ms.
 ``overflow_gap`` is 0.4 s (ratio 0.9's spacing at 25 Hz) until a detection is measured; after
-each local detection, whatever took it (an overflow frame, a frame the edge could not finish in
-time, fallback), it grows by a factor 1.5 when the detection stalled the robot (wall time beyond
-CPU time by half a camera period) and by 0.9 when it did not, within 0.1-2 s. The stall rule
+each local detection of a frame taken while the edge was usable (an overflow frame, a frame the
+edge could not finish in time; since 2026-12-07 evening not fallback's frames, taken back to back
+with the edge gone or blocked), it grows by a factor 1.5 when the detection stalled the robot (wall
+time beyond CPU time by half a camera period) and by 0.9 when it did not, within 0.1-2 s. The stall rule
 needs a measured detection first, so the first overflow frame comes after at least one such
 update. On a host slow enough that every detection stalls the gap ends at 2 s and the rule takes
 a few frames a run; a gap held at 0.4 s at most, tried on the tuning half, scored no better
@@ -220,6 +221,7 @@ class Dispatcher(Strategy):
     _local_seen: float = -math.inf  # when the local detector last finished a frame
     _local_fresh: bool = False
     _local_results: int = 0
+    _gap_trains: bool = True  # the last local frame was taken with the edge usable (see on_local_result)
     spares: int = 0  # frames sent beyond the depth instead of being skipped
     retries: int = 0  # frames sent to a blocked edge instead of being skipped
     overflows: int = 0  # frames a stalling local detector took because the edge path was full
@@ -420,6 +422,7 @@ class Dispatcher(Strategy):
             return self._to_edge(st)
         if take_overflow:  # (the edge path is full and the window too: LOCAL is the only option)
             self.overflows += 1
+        self._gap_trains = edge_ok  # (a fallback's back-to-back frames do not train the spacing)
         if retry or (st.edge_available and not st.edge_sends and not st.send_waiting
                      and since >= self.refresh_period):
             self._last_edge_send = st.now
@@ -454,12 +457,14 @@ class Dispatcher(Strategy):
             self.local_service.add(service if service is not None else rtt)
         self._local_results += 1
         self.local_cpu.add(cpu)
-        if (self._local_results > 1 and service is not None and cpu is not None
+        if (self._local_results > 1 and self._gap_trains and service is not None and cpu is not None
                 and math.isfinite(service) and math.isfinite(cpu)):
-            # Overflow frames spaced so a detection does not stall the robot: any detection whose
+            # Overflow frames spaced so a detection does not stall the robot: a detection whose
             # wall time passed its CPU time by half a camera period (it waited for the CPU quota)
-            # spaces them more, one that did not, less (back-to-back detections, in fallback, count
-            # too: left so, docs/perception-log.md)
+            # spaces them more, one that did not, less. Only detections of frames taken while the
+            # edge was usable: in fallback (the edge gone or blocked) the detector takes frame after
+            # frame, which says nothing of spaced ones (they pushed the gap to its 2 s ceiling, where
+            # it stayed long after the edge was back)
             grow = 1.5 if service - cpu > 0.5 * self.camera_period() else 0.9
             self.overflow_gap = min(max(self.overflow_gap * grow, OVERFLOW_GAP[0]), OVERFLOW_GAP[1])
         self._local_fresh = True  # timed at the next decision (the hooks carry no clock)

@@ -45,7 +45,8 @@ def test_table_has_our_rows_the_papers_rows_and_map_ratio_to_local() -> None:
     assert [c.strip() for c in line.split("|")[8:10]] == ["–", ""]
     # a run made with settings from ZOFFLOAD_* variables says so in its name
     env = dict(row("rate", 80_000), environment={"robot": {"coding": "f32"}})
-    assert table_markdown([env]).splitlines()[2].startswith('| rate (environment {"robot": {"coding": "f32"}}) |')
+    named = '| rate (environment {"robot": {"coding": "f32"}}) |'
+    assert table_markdown([env]).splitlines()[2].startswith(named)
 
 
 def test_the_scans_the_edge_registered_stand_beside_those_it_received() -> None:

@@ -390,6 +390,39 @@ def test_a_stalling_detector_takes_spaced_frames_the_full_edge_path_cannot() -> 
     assert d.decide(_st(**full(t))) == SKIP and d.overflows == 0
 
 
+def test_fallbacks_back_to_back_detections_leave_the_overflow_spacing_alone() -> None:
+    """With the edge gone the detector takes frame after frame; those detections stall the robot
+    but say nothing about spaced ones, so the spacing stays what the edge-time detections made it
+    (before: a one-second outage pushed it to its 2 s ceiling). A detection busy or a frame
+    waiting for it takes no overflow frame."""
+    def full(now: float) -> dict[str, object]:
+        return {"now": now, "capture": now, "in_flight": 4,
+                "edge_sends": tuple((now - 0.01 + 0.001 * k, 1e6) for k in range(4))}
+
+    d = _stalling(cpu=0.02)
+    gap = d.overflow_gap
+    assert gap < 2.0
+    for k in range(25):  # one second with the edge gone: every frame local, each stalling
+        assert d.decide(_st(now=1.0 + 0.04 * k, capture=1.0 + 0.04 * k, edge_available=False)) == LOCAL
+        d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(gap)
+    # a blocked edge (a frame unanswered) is fallback too, its copies to the edge included
+    d.blocked = True
+    side = d.decide(_st(now=2.1, capture=2.1))
+    assert side in (LOCAL, BOTH)
+    d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(gap)
+    d.blocked = False
+    # the edge back and its path full: a frame waiting for the detector, or one being detected,
+    # takes no overflow frame; a free detector does, and its stalling detection trains the spacing
+    later = 2.2 + gap
+    assert d.decide(_st(**full(later), local_last_start=2.1, local_waiting=True)) == SKIP
+    assert d.decide(_st(**full(later), local_last_start=2.1, local_busy=True)) == SKIP
+    assert d.decide(_st(**full(later), local_last_start=2.1)) == LOCAL and d.overflows == 1
+    d.on_local_result(0.1, service=0.1, cpu=0.02)
+    assert d.overflow_gap == pytest.approx(min(2.0, 1.5 * gap))
+
+
 def test_dispatch_is_the_default_and_takes_its_settings() -> None:
     from zoffload.runtime.config import PerceptionSettings
 
