@@ -33,7 +33,9 @@ for a final checkpoint, taken after its next registered scan, or at once if the 
 A scan that carries the robot's own estimate (``Scan.prior``: it bridged an outage with its local
 odometry, or mapped the scans read while its attach was under way) after scans this mapper
 missed is predicted from it (``predicted_from_prior``; an estimate in the frame of the attach's
-poses moved as the attach's backfill moved them).
+poses moved as the attach's backfill moved them). Such estimates are also counted by the frame the
+robot said they are in (``prior_frame_handed``, ``prior_frame_edge``, ``prior_frame_unsaid``: -1 or
+a robot older than version 11) and when the mapper moved one (``prior_moved``).
 
 Every sample is counted once: ``samples`` = ``received`` + ``other_edge`` + the drops by reason
 (``bad_key``, ``refused``, ``malformed``, ``foreign``, ``callback_error``, ``stale_epoch``,
@@ -68,6 +70,8 @@ from zoffload.runtime.session import undeclare
 
 log = logging.getLogger("zoffload.edge.mapping")
 
+# Scan.prior_frame -> its counter (the robot's word on its estimate's frame, version 11)
+PRIOR_FRAMES = {1: "prior_frame_handed", 0: "prior_frame_edge", -1: "prior_frame_unsaid"}
 GENERATIONS_KEPT = 4096  # robot ids whose session count is remembered (for export file names)
 
 
@@ -362,6 +366,10 @@ class MappingService:
                 if mapper.predict_from(scan.seq, scan.prior_seq, scan.prior[0], scan.prior[1], contest=True,
                                        frame=scan.prior_frame):
                     self._count(rs, "predicted_from_prior")
+                    # by the frame the robot said it is in, and whether the mapper moved it
+                    self._count(rs, PRIOR_FRAMES.get(scan.prior_frame, "prior_frame_unsaid"))
+                    if getattr(mapper, "prior_moved", False):
+                        self._count(rs, "prior_moved")
             # Decodes a coded payload (WireError if it is corrupt); the per-point times, when the
             # scan carries them, deskew it if the mapper was made to
             points, times = scan.cloud_and_times(self.limits)

@@ -322,6 +322,9 @@ def test_a_scan_with_the_robots_prior_after_an_outage_is_predicted_from_it(free_
                              for a, t in zip(acks.items[-3:], truth, strict=True)]
         assert max(errors["r1"]) < 0.25 and min(errors["r2"]) > 0.5, errors
         assert service.robots["r1"].counters["predicted_from_prior"] == 1
+        # said by no frame (-1: as an older robot's), no attach's correction to move it by
+        assert service.robots["r1"].counters["prior_frame_unsaid"] == 1
+        assert service.robots["r1"].counters["prior_moved"] == 0
         assert service.robots["r2"].counters["predicted_from_prior"] == 0
         assert service.status()["predicted_from_prior"] == 1 and balanced(service)
 
