@@ -93,6 +93,7 @@ def run_detect_experiment(exp: DetectExperiment) -> dict[str, Any]:
             if row.get("cut_short"):
                 break
         return row
+    environment_settings()  # a variable naming no setting fails here, before the run
     cpus = edge_apart_cores() if exp.edge_apart else {}
     if exp.edge_apart and (not cpus or shutil.which("taskset") is None):
         raise ConfigError("the edge on a core of its own (edge_apart) needs two cores to split and "

@@ -49,6 +49,7 @@ from zoffload.lab.runner import (
     Spawned,
     StartError,
     connect_when_listening,
+    environment_settings,
     sigterm_interrupts,
     wait_token,
 )
@@ -288,7 +289,8 @@ def _run_once(exp: FleetExperiment, out: Path, events: list[EdgeEvent], traces: 
     rows = {r: read_scan_rows(out / "robots" / r / "robot_scans.csv") for r in robots}
     figures = {r: _robot_result(exp, out / "robots" / r, rows[r], rate, refs) for r in robots}
     settled = fr.settled_phase(rows, 1 / rate, wall0)
-    result = {"experiment": _jsonable(exp), "seed": seed, "events": timeline, "clock_wall_start": wall0,
+    result = {"experiment": _jsonable(exp), "seed": seed, "environment": environment_settings(),
+              "events": timeline, "clock_wall_start": wall0,
               "traces": traces, "edge_cpu": fleet.quotas, "exit_codes": codes, "cpu": cpu, "robots": figures,
               "settled": settled, "summary": fr.run_summary(figures, cpu, settled)}
     (out / "results.json").write_text(json.dumps(result, indent=2, default=str))
@@ -346,9 +348,13 @@ def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces:
     runs = []
     for i in range(1, exp.repeat + 1):
         run = folder / f"run{i}"
-        if (run / "results.json").exists():  # resume: a complete run is kept
-            runs.append(json.loads((run / "results.json").read_text()))
-            continue
+        if (run / "results.json").exists():  # resume: a complete run is kept, under the same variables
+            done = json.loads((run / "results.json").read_text())
+            if done.get("environment", {}) == environment_settings():
+                runs.append(done)
+                continue
+            print(f"{run}: made with the variables {done.get('environment', {})}, not "
+                  f"{environment_settings()}: run again", flush=True)
         print(f"{folder.name} run {i}/{exp.repeat}: {exp.robots} robots x {exp.edges} edges, "
               f"events: {', '.join(e.label() for e in events) or 'none'}", flush=True)
         runs.append(_run_once(exp, run, events, traces, quotas, exp.seed + i - 1, refs))
@@ -361,6 +367,7 @@ def run_fleet_experiment(exp: FleetExperiment) -> dict[str, Any]:
     events = parse_events(exp.events, edge_ids(exp.edges))
     traces = parse_traces(exp.traces, robot_ids(exp.robots))
     quotas = parse_edge_cpu(exp.edge_cpu, edge_ids(exp.edges))
+    environment_settings()  # a variable naming no setting fails here, before the run
     out = Path(exp.out)
     out.mkdir(parents=True, exist_ok=True)
     refs: dict[int, Any] = {}

@@ -21,7 +21,7 @@ from zoffload.protocol import wire
 from zoffload.protocol.keys import Keys
 from zoffload.runtime.config import EdgeSettings, RobotSettings, ZenohSettings
 from zoffload.runtime.lifecycle import wait_in_slices
-from zoffload.runtime.loading import EDGE_ENV, ROBOT_ENV, environment_values, write_effective
+from zoffload.runtime.loading import EDGE_ENV, ROBOT_ENV, environment_values, load_settings, write_effective
 from zoffload.runtime.maps import fetch_map
 from zoffload.runtime.session import free_tcp_port, loopback_endpoint, open_session
 
@@ -229,10 +229,22 @@ def run_offload(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str 
 def environment_settings(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
     """The settings ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables set (``environ``, else
     os.environ): the daemons a run starts inherit them over the settings the run writes, so a run's
-    row records them (``{"robot": {"perception": {"overflow": "false"}}}``; {} for none)."""
-    found = {"robot": environment_values(RobotSettings, ROBOT_ENV, environ),
-             "edge": environment_values(EdgeSettings, EDGE_ENV, environ)}
-    return {side: values for side, values in found.items() if values}
+    row records them, validated (``{"robot": {"perception": {"overflow": false}}}``: ``false``,
+    ``False`` and ``0`` alike; {} for none). A variable naming no setting, or a value its setting
+    refuses, is a ConfigError."""
+    found: dict[str, Any] = {}
+    for side, cls, prefix in (("robot", RobotSettings, ROBOT_ENV), ("edge", EdgeSettings, EDGE_ENV)):
+        raw = environment_values(cls, prefix, environ)
+        if raw:
+            valid = load_settings(cls, env_prefix=prefix, environ=environ).model_dump(mode="json")
+            found[side] = _pick(raw, valid)
+    return found
+
+
+def _pick(keys: Mapping[str, Any], values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` restricted to the nested keys of ``keys`` (a section set whole stays whole)."""
+    return {k: _pick(v, values[k]) if isinstance(v, Mapping) and isinstance(values.get(k), Mapping)
+            else values.get(k) for k, v in keys.items()}
 
 
 def run_offload_once(out: Path, edge: EdgeSettings, robot: RobotSettings, trace: str | None,

@@ -265,7 +265,8 @@ def _run_once(exp: ScanExperiment, link_seed: int | None = None) -> dict[str, An
     else:
         row = _run_offload(exp, trace, voxel, rate, replay, max_scans, is_sim, source, out,
                            exp.seed if link_seed is None else link_seed)
-    row["environment"] = environment  # what ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* set ({} for nothing)
+    # what ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* set ({} for nothing; a local run starts no daemon)
+    row["environment"] = environment if voxel is not None else {}
     (out / "results.json").write_text(json.dumps(row, indent=2))
     return row
 

@@ -120,6 +120,7 @@ from zoffload.policy.agreement import Agreement
 from zoffload.policy.offload import BOTH, EDGE, LOCAL, NAN, SKIP, EdgeReply, OffloadState, Strategy
 
 OVERFLOW_GAP = (0.1, 2.0)  # s: the range of the overflow frames' spacing
+GAP_TRAINS_KEPT = 8  # local frames whose answer is awaited, at most (one detecting, one waiting: 2)
 
 
 class Ewma:
@@ -221,7 +222,9 @@ class Dispatcher(Strategy):
     _local_seen: float = -math.inf  # when the local detector last finished a frame
     _local_fresh: bool = False
     _local_results: int = 0
-    _gap_trains: bool = True  # the last local frame was taken with the edge usable (see on_local_result)
+    # capture time -> whether the edge was usable when the frame went local (on_local_result); the
+    # newest GAP_TRAINS_KEPT (a frame replaced in the detector's slot never gets an answer)
+    _gap_trains: dict[float, bool] = field(default_factory=dict)
     spares: int = 0  # frames sent beyond the depth instead of being skipped
     retries: int = 0  # frames sent to a blocked edge instead of being skipped
     overflows: int = 0  # frames a stalling local detector took because the edge path was full
@@ -422,7 +425,10 @@ class Dispatcher(Strategy):
             return self._to_edge(st)
         if take_overflow:  # (the edge path is full and the window too: LOCAL is the only option)
             self.overflows += 1
-        self._gap_trains = edge_ok  # (a fallback's back-to-back frames do not train the spacing)
+        # (a fallback's back-to-back frames do not train the spacing: on_local_result)
+        self._gap_trains[st.capture] = edge_ok
+        while len(self._gap_trains) > GAP_TRAINS_KEPT:
+            del self._gap_trains[next(iter(self._gap_trains))]
         if retry or (st.edge_available and not st.edge_sends and not st.send_waiting
                      and since >= self.refresh_period):
             self._last_edge_send = st.now
@@ -452,12 +458,14 @@ class Dispatcher(Strategy):
         if self.learn_bias:
             self.agreement.observe(seq, side, boxes, scores, capture)
 
-    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None,
+                        capture: float | None = None) -> None:
         if self._local_results:  # the first one runs while the whole robot is starting: not a measure
             self.local_service.add(service if service is not None else rtt)
         self._local_results += 1
         self.local_cpu.add(cpu)
-        if (self._local_results > 1 and self._gap_trains and service is not None and cpu is not None
+        trains = self._gap_trains.pop(capture, True) if capture is not None else True
+        if (self._local_results > 1 and trains and service is not None and cpu is not None
                 and math.isfinite(service) and math.isfinite(cpu)):
             # Overflow frames spaced so a detection does not stall the robot: a detection whose
             # wall time passed its CPU time by half a camera period (it waited for the CPU quota)

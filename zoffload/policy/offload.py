@@ -102,8 +102,9 @@ class Strategy:
 
     # Observations (no-ops for the static strategies)
     def on_local_result(self, rtt: float, service: float | None = None,  # noqa: B027 - optional
-                        cpu: float | None = None) -> None:
-        pass
+                        cpu: float | None = None, capture: float | None = None) -> None:
+        """A local detection's answer: ``rtt`` from capture, the detector's wall (``service``) and
+        CPU time, and the frame's ``capture`` time (which decision took it)."""
 
     def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:  # noqa: B027
         pass
@@ -191,7 +192,8 @@ class ThesisDynamic(Strategy):
             return LOCAL
         return self.compare(local, edge)
 
-    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None,
+                        capture: float | None = None) -> None:
         self.rtt_local.add(rtt)
 
     def on_edge_result(self, rtt: float, reply: EdgeReply | None = None) -> None:
@@ -246,7 +248,8 @@ class DeliveryAwareDynamic(ThesisDynamic):
             self._preferred = EDGE
         return self._preferred
 
-    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None) -> None:
+    def on_local_result(self, rtt: float, service: float | None = None, cpu: float | None = None,
+                        capture: float | None = None) -> None:
         self.rtt_local.add(rtt)
         if service is not None:
             self.service_local.add(service)

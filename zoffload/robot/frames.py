@@ -248,7 +248,7 @@ class FrameBook:
                    n_persons=len(scores))
         self.persons[seq] = (boxes, scores)
         self.finish(seq, "local_done")
-        self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu)
+        self.strategy.on_local_result(now - rec["capture"], service=service, cpu=cpu, capture=rec["capture"])
         self._observe(seq, LOCAL, boxes, scores, rec["capture"])
 
     def edge_result(self, seq: int, status: str, now: float, infer_time: float, queue_time: float,

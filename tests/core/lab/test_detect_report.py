@@ -143,13 +143,15 @@ def test_settings_from_the_environment_are_recorded_and_make_runs_of_their_own(
     assert plain["environment"] == "{}"
     monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "false")
     off = de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path)))
-    assert json.loads(off["environment"]) == {"robot": {"perception": {"overflow": "false"}}}
+    assert json.loads(off["environment"]) == {"robot": {"perception": {"overflow": False}}}
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "0")  # the same setting, said otherwise
+    assert de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path))) == off
     runs = [dict(json.loads((_run(tmp_path / f"r{i}", "dispatch", 50.0 + i) / "results.json").read_text()),
                  **settings) for i, settings in enumerate((plain, plain, off))]
     rows = aggregate(runs)
     assert sorted(r["n"] for r in rows) == [1, 2]
     text = table(rows, "detect-capped", "0.25 core")
-    assert '(environment {"robot": {"perception": {"overflow": "false"}}})' in text
+    assert '(environment {"robot": {"perception": {"overflow": false}}})' in text
     ran: list[str] = []
     monkeypatch.setattr(de, "run_detect_experiment", lambda exp: ran.append(exp.out) or {"strategy": "x"})
     monkeypatch.setattr(de, "summary_line", lambda row: "")

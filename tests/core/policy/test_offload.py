@@ -403,24 +403,28 @@ def test_fallbacks_back_to_back_detections_leave_the_overflow_spacing_alone() ->
     gap = d.overflow_gap
     assert gap < 2.0
     for k in range(25):  # one second with the edge gone: every frame local, each stalling
-        assert d.decide(_st(now=1.0 + 0.04 * k, capture=1.0 + 0.04 * k, edge_available=False)) == LOCAL
-        d.on_local_result(0.1, service=0.1, cpu=0.02)
+        t = 1.0 + 0.04 * k
+        assert d.decide(_st(now=t, capture=t, edge_available=False)) == LOCAL
+        d.on_local_result(0.1, service=0.1, cpu=0.02, capture=t)
     assert d.overflow_gap == pytest.approx(gap)
-    # a blocked edge (a frame unanswered) is fallback too, its copies to the edge included
+    # a blocked edge (a frame unanswered) is fallback too, its copies to the edge included; its
+    # detection still running when the edge path is full again and the next frame goes local
     d.blocked = True
-    side = d.decide(_st(now=2.1, capture=2.1))
-    assert side in (LOCAL, BOTH)
-    d.on_local_result(0.1, service=0.1, cpu=0.02)
-    assert d.overflow_gap == pytest.approx(gap)
+    assert d.decide(_st(now=2.1, capture=2.1)) in (LOCAL, BOTH)
     d.blocked = False
     # the edge back and its path full: a frame waiting for the detector, or one being detected,
-    # takes no overflow frame; a free detector does, and its stalling detection trains the spacing
+    # takes no overflow frame; a free detector does
     later = 2.2 + gap
     assert d.decide(_st(**full(later), local_last_start=2.1, local_waiting=True)) == SKIP
     assert d.decide(_st(**full(later), local_last_start=2.1, local_busy=True)) == SKIP
     assert d.decide(_st(**full(later), local_last_start=2.1)) == LOCAL and d.overflows == 1
-    d.on_local_result(0.1, service=0.1, cpu=0.02)
+    # each answer is judged by its own frame's decision: the blocked edge's one trains nothing,
+    # the overflow frame's (stalling) spaces them more
+    d.on_local_result(0.1, service=0.1, cpu=0.02, capture=2.1)
+    assert d.overflow_gap == pytest.approx(gap)
+    d.on_local_result(0.1, service=0.1, cpu=0.02, capture=later)
     assert d.overflow_gap == pytest.approx(min(2.0, 1.5 * gap))
+    assert not d._gap_trains  # both answered: nothing kept
 
 
 def test_dispatch_is_the_default_and_takes_its_settings() -> None:
