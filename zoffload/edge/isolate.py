@@ -75,7 +75,8 @@ from zoffload.protocol import wire
 log = logging.getLogger("zoffload.edge.mapping")
 
 # What a reply carries of the mapper besides the call's result (read without a request)
-STATS = ("map_points", "scans", "map_overflow", "backfilled", "backfill_unused", "backfill_posed")
+STATS = ("map_points", "scans", "map_overflow", "backfilled", "backfill_unused", "backfill_posed",
+         "priors_moved")
 CALLS = frozenset({"register", "map_cloud", "trajectory", "continue_from", "checkpoint", "predict_from"})
 GETS = frozenset({"backfilled_seqs"})
 # A request goes to an idle process (one at a time): a write that makes no progress for this long
@@ -346,6 +347,10 @@ class ProcessMapper:
     @property
     def backfill_posed(self) -> int:
         return self._stats["backfill_posed"]
+
+    @property
+    def priors_moved(self) -> int:
+        return self._stats["priors_moved"]
 
     @property
     def backfilled_seqs(self) -> list[int]:

@@ -35,7 +35,9 @@ odometry, or mapped the scans read while its attach was under way) after scans t
 missed is predicted from it (``predicted_from_prior``; an estimate in the frame of the attach's
 poses moved as the attach's backfill moved them). Such estimates are also counted by the frame the
 robot said they are in (``prior_frame_handed``, ``prior_frame_edge``, ``prior_frame_unsaid``: -1 or
-a robot older than version 11) and when the mapper moved one (``prior_moved``).
+a robot older than version 11) and when the mapper moved one by the attach's correction
+(``prior_moved_by_attach``; not ``gap_prior_moved``, which counts the scans where the moved guess
+won), all when taken, as ``predicted_from_prior``: before the scan's registration, which may fail.
 
 Every sample is counted once: ``samples`` = ``received`` + ``other_edge`` + the drops by reason
 (``bad_key``, ``refused``, ``malformed``, ``foreign``, ``callback_error``, ``stale_epoch``,
@@ -363,13 +365,14 @@ class MappingService:
             if scan.prior is not None and hasattr(rs.mapper, "predict_from"):
                 # The robot bridged scans this mapper missed: predict from its estimate
                 mapper: FleetMapper = rs.mapper  # type: ignore[assignment]
+                moved = getattr(mapper, "priors_moved", 0)
                 if mapper.predict_from(scan.seq, scan.prior_seq, scan.prior[0], scan.prior[1], contest=True,
                                        frame=scan.prior_frame):
                     self._count(rs, "predicted_from_prior")
                     # by the frame the robot said it is in, and whether the mapper moved it
                     self._count(rs, PRIOR_FRAMES.get(scan.prior_frame, "prior_frame_unsaid"))
-                    if getattr(mapper, "prior_moved", False):
-                        self._count(rs, "prior_moved")
+                    # (a mapper in a process of its own: its counters come with each reply)
+                    self._count(rs, "prior_moved_by_attach", getattr(mapper, "priors_moved", 0) - moved)
             # Decodes a coded payload (WireError if it is corrupt); the per-point times, when the
             # scan carries them, deskew it if the mapper was made to
             points, times = scan.cloud_and_times(self.limits)

@@ -86,6 +86,10 @@ class BoundedMapper:
         return self.inner.backfill_posed
 
     @property
+    def priors_moved(self) -> int:
+        return self.inner.priors_moved
+
+    @property
     def backfilled_seqs(self) -> Sequence[int]:
         return self.inner.backfilled_seqs
 

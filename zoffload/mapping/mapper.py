@@ -254,7 +254,7 @@ class RobotMapper:
         # registered after it (None until then): a robot's estimate of a scan before that one is
         # in the frame of the poses it handed over (``predict_from``)
         self._handover: np.ndarray | None = None
-        self.prior_moved = False  # the last contested estimate taken was moved by the handover's correction
+        self.priors_moved = 0  # contested estimates taken moved by the handover's correction
         self._live_from: int | None = None
         self.turned = 0  # of those, registered from a turned guess
         self.backfilled = 0  # scans registered from an attach's backfill (continue_from)
@@ -674,7 +674,6 @@ class RobotMapper:
         if contest:  # taken by the scan's register (not if it never comes, or fails)
             pose, other = np.asarray(pose, np.float64), None
             c = self._handover
-            self.prior_moved = False
             if c is not None and not np.allclose(c, np.eye(4)):
                 moved = as_rigid(c @ pose)
                 live = self._live_from
@@ -684,7 +683,7 @@ class RobotMapper:
                     pose, other = moved, ("prior_unmoved", pose)
                 elif frame == -1 and live is not None and prior_seq < live + self.max_gap:
                     other = ("prior_moved", moved)  # (a bridge begun before this mapper's answers came)
-                self.prior_moved = pose is moved  # (the edge counts it: prior_moved)
+                self.priors_moved += pose is moved  # (the edge counts them: prior_moved_by_attach)
             self._prior = (int(seq), int(prior_seq), pose, delta, other)
         else:
             self._take(prior_seq, pose, delta)

@@ -59,6 +59,7 @@ from zoffload.robot.sensor import Reading
 
 log = logging.getLogger("zoffload.robot.localpose")
 
+NO_EDGE = "no edge"  # why a period began that maps scans read with no edge
 UNKNOWN_FRAME = ("", -1)  # a period whose checkpoint and first pose are in different frames
 HANDOVER_POSES = 64  # the robot's newest scan poses an attach may hand over (those after its checkpoint)
 
@@ -95,6 +96,7 @@ class PoseKeeper:
         # After a move off a dead edge: the first scan to the next edge (its ack, or a later
         # one's, ends the prior the scans carry from the dead edge's unanswered ones)
         self._prior_from: int | None = None
+        self._no_edge_period = False  # the odometry's period began with no edge (``no_edge``)
 
     # The ack callback (caller holds the lock)
     def edge_pose(self, seq: int, pose: np.ndarray) -> None:
@@ -138,7 +140,7 @@ class PoseKeeper:
         with self.lock:  # the next attach hands this period's poses over
             self._bridge_from, self._local, self._prior_from = None, None, None
         if not odo.active:
-            self._begin(reading.seq, "no edge")
+            self._begin(reading.seq, NO_EDGE)
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         with self.lock:
             self.ledger.local(reading.seq, dict(record, cpu_local_ms=cpu), pose)
@@ -195,7 +197,9 @@ class PoseKeeper:
         pose, cpu = odo.register(reading.seq, reading.frame.points, reading.capture_stamp)
         self.bridged += 1
         with self.lock:
-            self._local = (reading.seq, pose, odo.motion, False)
+            # (a bridge that goes on with a no-edge period's odometry is in that period's frame:
+            # an edge reading < 11 gets no prior of it either)
+            self._local = (reading.seq, pose, odo.motion, self._no_edge_period)
         return pose, cpu
 
     def prior_for(self, seq: int, reads: int = max(wire.READS)) -> tuple[int, np.ndarray, int] | None:
@@ -205,7 +209,8 @@ class PoseKeeper:
         and the odometry's motion per period then, and the frame it is in (``Scan.prior_frame``:
         0 the answers of the edge it goes to, 1 the poses the attach handed over, -1 not known
         (the period's checkpoint and first pose in different frames); -1, not said, to an edge
-        that reads less than 11, which gets no prior of a scan read with no edge),
+        that reads less than 11, which gets no prior of a scan read with no edge, nor of a bridge
+        that goes on with such a period's odometry),
         (prior_seq, (2, 4, 4), frame); None once the edge has acked a scan of that bridge (or
         after the attach), or when it is ``MAX_GAP`` scans old. The edge uses it only after scans
         it missed."""
@@ -250,6 +255,7 @@ class PoseKeeper:
                 frame = by if cp is None else frame if by == frame else UNKNOWN_FRAME
             self._frame = frame
         odo.begin(cp, newest)
+        self._no_edge_period = why == NO_EDGE
         caught = odo.catch_up(seq, posed)
         for s, pose, cpu in caught:
             with self.lock:

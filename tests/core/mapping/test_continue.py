@@ -482,7 +482,7 @@ def test_a_robots_estimate_from_a_slow_attach_is_moved_as_its_handed_over_poses_
         else:  # an older robot's (frame not said): moved too, the one as sent another guess
             assert m.predict_from(live, live - 1, *prior, contest=True)
             assert m._prior is not None and m._prior[4] is not None and m._prior[4][0] == "prior_unmoved"
-            assert m.prior_moved  # (the edge counts it)
+            assert m.priors_moved == 1  # (the edge counts them)
             unsaid = m._prior[2]
             assert np.linalg.norm(unsaid[:3, 3] - prior[0][:3, 3]) > 3.0
         assert m.predict_from(live, live - 1, *prior, contest=True, frame=1)  # the robot says (v11)
@@ -501,7 +501,7 @@ def test_a_robots_estimate_from_a_slow_attach_is_moved_as_its_handed_over_poses_
             # the robot says which (v11): its answers' frame taken as sent, no other guess
             assert m.predict_from(live + 5, live + 4, pose, robot.odometry.last_delta, contest=True, frame=0)
             assert m._prior is not None and np.array_equal(m._prior[2], pose) and m._prior[4] is None
-            assert not m.prior_moved
+            assert m.priors_moved == 2  # (the frame=1 one above moved too; this one not)
     (errors, kept), (unmoved, _) = runs[True], runs[False]
     assert max(errors) < 0.25 and kept == "prior", (errors, kept)
     assert min(unmoved) > 1.0, unmoved

@@ -218,6 +218,49 @@ def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_until_it_a
     assert keeper.prior_for(36) is None
 
 
+def test_a_bridge_going_on_with_a_no_edge_periods_odometry_gives_an_older_edge_no_prior(
+        edge_run: tuple) -> None:
+    """As above, but the next edge's acks are overdue at once: the robot bridges with the odometry
+    of the period that mapped the scans read with no edge (no new period begins), so its priors are
+    in that period's frame. An edge that reads < 11 gets no prior of them, as of the no-edge scans
+    (it would take them as its own frame); one that reads 11 gets them, said in the handed-over
+    frame. (Before: the bridge's priors went to the older edge as its own.)"""
+    import threading
+    import time
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    fleet.checkpoint = cp
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0,
+                        alive=lambda e: e != "edge1", bridge_after=0.3)
+    keeper.edge_pose(29, mapper.poses[29])
+    for i in (30, 31):
+        assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge1", 1)) is None
+        ledger.handed_off(i, {"capture_stamp": time.time()})
+    for i in (32, 33):  # edge1 died; the attach to edge2 under way
+        assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
+    assert odo.active
+    fleet.edge_present("edge2")
+    ask = fleet.next_attach(0.0, 1000)
+    assert ask is not None and ask[0] == "edge2"
+    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
+                                               detail="", robots=1, capacity=4), 0.0)
+    fleet.on_sent(time.monotonic() - 0.5)  # edge2's first scan half a second unanswered
+    bridged = keeper.attached(Reading(34, src.read(34), time.time()), ask)
+    assert bridged is not None and odo.active and keeper.bridges == 1  # the same period goes on
+    keeper.book_bridged(34, *bridged)
+    got = keeper.prior_for(35)
+    assert got is not None and got[0] == 34 and got[2] == 1
+    assert keeper.prior_for(35, reads=10) is None
+
+
 def test_a_period_starts_from_the_newest_poses_the_robot_has_its_own_included(edge_run: tuple) -> None:
     """The robot mapped scans 30-37 itself (no edge), reattached and sent 38-40, and the edge's
     acks are overdue: the bridge starts from its own pose of scan 37, not from the checkpoint of
