@@ -254,7 +254,8 @@ def add_experiment(sub: Any) -> None:
     sw = exs.add_parser("detect-sweep", help="the thesis' grid: strategies x links x CPU quotas x repeats")
     sw.add_argument("--out", required=True, help="sweep folder (one sub-folder per link and strategy)")
     sw.add_argument("--traces", nargs="+", default=None,
-                    help="default: none detect-capped wifi-locations mmwave-blockage (never tuned on)")
+                    help="default: none detect-capped wifi-locations mmwave-blockage "
+                         "(held out until 2026-12-07)")
     sw.add_argument("--strategies", nargs="+", default=None,
                     help="default: robot, ratio:0.1 ... ratio:0.9, edge, thesis, dynamic, dispatch "
                     "(S@jpeg: strategy S with JPEG frames; S@auto: encoding chosen per frame)")

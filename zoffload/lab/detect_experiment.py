@@ -14,7 +14,8 @@ whose results are complete is not run again, so an interrupted sweep resumes whe
 
 The honest protocol: strategies are tuned on ``coco-clips@tune`` and reported on
 ``coco-clips@holdout`` (sources/images.py ``coco_half``: the images sorted by file name, even
-positions tune, odd positions holdout), and on a link never used to tune them (``mmwave-blockage``,
+positions tune, odd positions holdout), and on a link not used to tune them until 2026-12-07, when
+the overflow rule's tuning pairs used it (``mmwave-blockage``,
 lab/detect_link.py).
 """
 

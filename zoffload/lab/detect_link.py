@@ -1,4 +1,5 @@
-"""The detection experiments' held-out link: a trace no offloading strategy was tuned on.
+"""The detection experiments' held-out link: a trace no offloading strategy was tuned on until
+2026-12-07, when the tuning pairs of the dispatcher's overflow rule used it (README, Experiments).
 
 ``mmwave-blockage``: a 5G millimetre-wave uplink as a walking robot sees it. The rate follows a
 seeded random walk in log space between 60 and 400 Mbps (the raw 848x480 camera stream needs
@@ -48,7 +49,8 @@ def mmwave_rows(seed: int = SEED, duration: float = DURATION) -> list[Row]:
 
 def to_csv(rows: list[Row]) -> str:
     head = [f"# {NAME}: a 5G mmWave uplink, 60-400 Mbps random walk, 5-20 ms delay, blockages.",
-            f"# Written by python -m zoffload.lab.detect_link (seed {SEED}); never used to tune a strategy.",
+            f"# Written by python -m zoffload.lab.detect_link (seed {SEED}); held out until 2026-12-07, "
+            "when the tuning pairs of the dispatcher's overflow rule used it.",
             "time_s, up_mbps, down_mbps, delay_ms, jitter_ms, outage"]
     body = [f"{t:g}, {u:g}, {d:g}, {dl:g}, {j:g}, {o}" for t, u, d, dl, j, o in rows]
     return "\n".join([*head, *body]) + "\n"

@@ -29,7 +29,7 @@ THESIS_AP: dict[tuple[str, str], float] = {
 }
 LINK_NAMES = {"none": "unconstrained (Table 6.3)", "detect-capped": "capped 160 Mbps (Table 6.4)",
               "wifi-locations": "fluctuating Wi-Fi (Table 6.5)",
-              "mmwave-blockage": "5G mmWave with blockages (held out: never tuned on)"}
+              "mmwave-blockage": "5G mmWave with blockages (held out until 2026-12-07, tuned on since)"}
 ROW_NAMES = {"robot": "Robot only", "edge": "Edge only", "thesis": "Dynamic (thesis rule)",
              "dynamic": "Dynamic (ours, before)", "dispatch": "**Dispatch (ours)**",
              "dynamic@jpeg": "Dynamic (ours, before) + JPEG", "dispatch@jpeg": "Dispatch (ours) + JPEG"}
