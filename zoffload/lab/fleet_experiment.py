@@ -355,6 +355,7 @@ def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces:
                 continue
             print(f"{run}: made with the variables {done.get('environment', {})}, not "
                   f"{environment_settings()}: run again", flush=True)
+            (run / "results.json").unlink()  # (a rerun cut short must not leave the old one complete)
         print(f"{folder.name} run {i}/{exp.repeat}: {exp.robots} robots x {exp.edges} edges, "
               f"events: {', '.join(e.label() for e in events) or 'none'}", flush=True)
         runs.append(_run_once(exp, run, events, traces, quotas, exp.seed + i - 1, refs))

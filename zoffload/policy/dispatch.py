@@ -373,7 +373,7 @@ class Dispatcher(Strategy):
         if edge_ok and self._last_answer == -math.inf and not st.edge_sends:  # never answered yet
             return self._to_edge(st)
         if math.isnan(self.local_service.value) and not st.local_busy:
-            return LOCAL
+            return self._to_local(st, edge_ok)
         deadline = (st.capture if math.isfinite(st.capture) else st.now) + self.max_age
         period = self.camera_period()
         # A side that would not start on this frame within a camera period would finish a later,
@@ -425,10 +425,7 @@ class Dispatcher(Strategy):
             return self._to_edge(st)
         if take_overflow:  # (the edge path is full and the window too: LOCAL is the only option)
             self.overflows += 1
-        # (a fallback's back-to-back frames do not train the spacing: on_local_result)
-        self._gap_trains[st.capture] = edge_ok
-        while len(self._gap_trains) > GAP_TRAINS_KEPT:
-            del self._gap_trains[next(iter(self._gap_trains))]
+        self._to_local(st, edge_ok)
         if retry or (st.edge_available and not st.edge_sends and not st.send_waiting
                      and since >= self.refresh_period):
             self._last_edge_send = st.now
@@ -448,6 +445,14 @@ class Dispatcher(Strategy):
             self._base_at = st.now  # the next drain a base_period on, answered or not
         return self.draining
 
+    def _to_local(self, st: OffloadState, edge_ok: bool) -> str:
+        """A frame goes local (or both): whether the edge was usable is kept for its answer (a
+        fallback's back-to-back frames do not train the overflow spacing: on_local_result)."""
+        self._gap_trains[st.capture] = edge_ok
+        while len(self._gap_trains) > GAP_TRAINS_KEPT:
+            del self._gap_trains[next(iter(self._gap_trains))]
+        return LOCAL
+
     def _to_edge(self, st: OffloadState) -> str:
         self._last_edge_send = st.now
         return EDGE
@@ -464,7 +469,8 @@ class Dispatcher(Strategy):
             self.local_service.add(service if service is not None else rtt)
         self._local_results += 1
         self.local_cpu.add(cpu)
-        trains = self._gap_trains.pop(capture, True) if capture is not None else True
+        # (an answer whose frame's decision is not kept, 8 frames on, trains nothing)
+        trains = self._gap_trains.pop(capture, False) if capture is not None else True
         if (self._local_results > 1 and trains and service is not None and cpu is not None
                 and math.isfinite(service) and math.isfinite(cpu)):
             # Overflow frames spaced so a detection does not stall the robot: a detection whose

@@ -3,6 +3,8 @@ from the robot's files (with and without the fleet section), the aggregation and
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from zoffload.lab import fleet_report as fr
@@ -176,3 +178,34 @@ def test_markdown_report_has_the_figures_and_the_verdict() -> None:
     assert "**1.20×** (target ≤ 1.2× with 5 kills: met)" in text
     assert "| robot1 | 4 |" in text
     assert "is for 5" in fr.markdown("Fleet", "", agg, base, per_robot, 1.5, 1)
+
+
+def test_a_resumed_series_keeps_runs_made_under_the_same_variables_only(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A complete run is kept when the ZOFFLOAD_* variables are what they were (normalised: 0 is
+    false), run again (its old results removed first) when they differ; a variable naming no
+    setting fails before any run."""
+    import json
+
+    import zoffload.lab.fleet_experiment as fe
+    from zoffload.runtime.errors import ConfigError
+
+    ran: list[str] = []
+
+    def once(exp: object, run: Path, *args: object) -> dict[str, object]:
+        ran.append(run.name)
+        assert not (run / "results.json").exists()
+        return {"summary": {}, "environment": fe.environment_settings()}
+
+    monkeypatch.setattr(fe, "_run_once", once)
+    monkeypatch.setattr(fe, "summary_line", lambda summary: "")
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "false")
+    for i, env in ((1, {"robot": {"perception": {"overflow": False}}}), (2, {})):
+        (tmp_path / f"run{i}").mkdir()
+        (tmp_path / f"run{i}" / "results.json").write_text(json.dumps({"summary": {}, "environment": env}))
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "0")
+    runs = fe._series(fe.FleetExperiment(out=str(tmp_path), repeat=2), tmp_path, [], {}, {}, {})
+    assert ran == ["run2"] and len(runs) == 2
+    monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOWS", "false")
+    with pytest.raises(ConfigError, match="overflows"):
+        fe.run_fleet_experiment(fe.FleetExperiment(out=str(tmp_path / "x")))

@@ -425,6 +425,15 @@ def test_fallbacks_back_to_back_detections_leave_the_overflow_spacing_alone() ->
     d.on_local_result(0.1, service=0.1, cpu=0.02, capture=later)
     assert d.overflow_gap == pytest.approx(min(2.0, 1.5 * gap))
     assert not d._gap_trains  # both answered: nothing kept
+    # a robot that starts with no edge: its first frames, which measure the detector, are
+    # fallback's too; an answer whose frame's decision is not kept trains nothing
+    d = make_strategy("dispatch", local_bias=0.0)
+    assert isinstance(d, Dispatcher)
+    for k in range(4):
+        assert d.decide(_st(now=0.04 * k, capture=0.04 * k, edge_available=False)) == LOCAL
+        d.on_local_result(0.1, service=0.1, cpu=0.02, capture=0.04 * k)
+    d.on_local_result(0.1, service=0.1, cpu=0.02, capture=9.0)
+    assert d.overflow_gap == pytest.approx(0.4)
 
 
 def test_dispatch_is_the_default_and_takes_its_settings() -> None:
