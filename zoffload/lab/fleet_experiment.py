@@ -346,15 +346,16 @@ def _jsonable(exp: FleetExperiment) -> dict[str, Any]:
 def _series(exp: FleetExperiment, folder: Path, events: list[EdgeEvent], traces: dict[str, str],
             quotas: dict[str, float], refs: dict[int, Any]) -> list[dict[str, Any]]:
     runs = []
+    environment = environment_settings()
     for i in range(1, exp.repeat + 1):
         run = folder / f"run{i}"
         if (run / "results.json").exists():  # resume: a complete run is kept, under the same variables
             done = json.loads((run / "results.json").read_text())
-            if done.get("environment", {}) == environment_settings():
+            if done.get("environment", {}) == environment:
                 runs.append(done)
                 continue
             print(f"{run}: made with the variables {done.get('environment', {})}, not "
-                  f"{environment_settings()}: run again", flush=True)
+                  f"{environment}: run again", flush=True)
             (run / "results.json").unlink()  # (a rerun cut short must not leave the old one complete)
         print(f"{folder.name} run {i}/{exp.repeat}: {exp.robots} robots x {exp.edges} edges, "
               f"events: {', '.join(e.label() for e in events) or 'none'}", flush=True)

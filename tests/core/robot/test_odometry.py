@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -179,28 +180,12 @@ def test_after_a_slow_attach_the_next_edge_gets_the_newest_local_pose_until_it_a
     edge's first scans carry the newest of them as their prior (the edge moves it as it moved the
     handed-over poses, mapping/mapper.py ``predict_from``) until that edge acks one of them; a
     late ack of an older scan does not end it."""
-    import threading
     import time
 
-    from zoffload.robot.fleet import FleetState
-    from zoffload.robot.ledger import ScanLedger
-    from zoffload.robot.localpose import PoseKeeper
     from zoffload.robot.sensor import Reading
 
-    src, mapper, cp = edge_run
-    fleet = FleetState("robot1", failover_after=1.0)
-    fleet.checkpoint = cp
-    ledger, lock = ScanLedger(), threading.Lock()
-    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
-    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0,
-                        alive=lambda e: e != "edge1")
-    keeper.edge_pose(29, mapper.poses[29])
-    for i in (30, 31):
-        assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge1", 1)) is None
-        ledger.handed_off(i, {"capture_stamp": time.time()})
-    # edge1 died; the attach to edge2 is under way: scans 32 and 33 have no edge
-    for i in (32, 33):
-        assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
+    src, mapper, _ = edge_run
+    _, ledger, lock, odo, keeper = _slow_attach_keeper(edge_run)
     assert {30, 31, 32, 33} <= set(ledger.poses) and ledger.records[31]["pose_source"] == "local"
     for i in (34, 35):
         assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge2", 2)) is None
@@ -225,33 +210,14 @@ def test_a_bridge_going_on_with_a_no_edge_periods_odometry_gives_an_older_edge_n
     in that period's frame. An edge that reads < 11 gets no prior of them, as of the no-edge scans
     (it would take them as its own frame); one that reads 11 gets them, said in the handed-over
     frame. (Before: the bridge's priors went to the older edge as its own.)"""
-    import threading
     import time
 
-    from zoffload.robot.fleet import FleetState
-    from zoffload.robot.ledger import ScanLedger
-    from zoffload.robot.localpose import PoseKeeper
     from zoffload.robot.sensor import Reading
 
-    src, mapper, cp = edge_run
-    fleet = FleetState("robot1", failover_after=1.0)
-    fleet.checkpoint = cp
-    ledger, lock = ScanLedger(), threading.Lock()
-    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
-    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0,
-                        alive=lambda e: e != "edge1", bridge_after=0.3)
-    keeper.edge_pose(29, mapper.poses[29])
-    for i in (30, 31):
-        assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge1", 1)) is None
-        ledger.handed_off(i, {"capture_stamp": time.time()})
-    for i in (32, 33):  # edge1 died; the attach to edge2 under way
-        assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
+    src = edge_run[0]
+    fleet, _, _, odo, keeper = _slow_attach_keeper(edge_run, bridge_after=0.3)
     assert odo.active
-    fleet.edge_present("edge2")
-    ask = fleet.next_attach(0.0, 1000)
-    assert ask is not None and ask[0] == "edge2"
-    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
-                                               detail="", robots=1, capacity=4), 0.0)
+    ask = _attach(fleet, "edge2")
     fleet.on_sent(time.monotonic() - 0.5)  # edge2's first scan half a second unanswered
     bridged = keeper.attached(Reading(34, src.read(34), time.time()), ask)
     assert bridged is not None and odo.active and keeper.bridges == 1  # the same period goes on
@@ -320,6 +286,43 @@ def test_a_move_in_the_middle_of_a_bridge_ends_it_and_the_new_edge_gets_its_own(
     assert keeper.prior_for(34) is None and scan(34, moved) is None and not odo.active
 
 
+def _attach(fleet: Any, edge: str) -> tuple[str, int]:
+    """``fleet`` attached to ``edge``, which was seen and accepted: the attach target."""
+    fleet.edge_present(edge)
+    ask = fleet.next_attach(0.0, 1000)
+    assert ask is not None and ask[0] == edge
+    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
+                                               detail="", robots=1, capacity=4), 0.0)
+    return ask
+
+
+def _slow_attach_keeper(edge_run: tuple, **keeper_kw: Any) -> tuple:
+    """edge1 answered scan 29, was sent 30 and 31 and died; 32 and 33 were read with no edge while
+    the attach to the next edge was under way: (fleet, ledger, lock, odometry, keeper)."""
+    import threading
+    import time
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    fleet.checkpoint = cp
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0,
+                        alive=lambda e: e != "edge1", **keeper_kw)
+    keeper.edge_pose(29, mapper.poses[29])
+    for i in (30, 31):
+        assert keeper.attached(Reading(i, src.read(i), time.time()), ("edge1", 1)) is None
+        ledger.handed_off(i, {"capture_stamp": time.time()})
+    for i in (32, 33):  # edge1 died; the attach to edge2 is under way: these have no edge
+        assert keeper.no_edge(Reading(i, src.read(i), time.time()), {"capture_stamp": time.time()})
+    return fleet, ledger, lock, odo, keeper
+
+
 def _attached_keeper(edge_run: tuple) -> tuple:
     """A robot attached to edge1, whose newest checkpoint (after scan 29) and pose of scan 29 it has,
     with its local odometry and pose keeper: (fleet, attach target, ledger, lock, odometry, keeper)."""
@@ -331,11 +334,7 @@ def _attached_keeper(edge_run: tuple) -> tuple:
 
     src, mapper, cp = edge_run
     fleet = FleetState("robot1", failover_after=1.0)
-    fleet.edge_present("edge1")
-    ask = fleet.next_attach(0.0, 1000)
-    assert ask is not None
-    fleet.attach_result(*ask, wire.AttachReply(robot="robot1", edge=ask[0], epoch=ask[1], accepted=True,
-                                               detail="", robots=1, capacity=4), 0.0)
+    ask = _attach(fleet, "edge1")
     fleet.checkpoint = cp
     ledger, lock = ScanLedger(), threading.Lock()
     odo = LocalOdometry("robot1", src.max_range, catch_up=10)
