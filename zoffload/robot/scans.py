@@ -62,7 +62,7 @@ from zoffload.runtime.config import RobotSettings
 from zoffload.runtime.drops import Drops
 from zoffload.runtime.lifecycle import StopSignal
 from zoffload.runtime.results import write_figures
-from zoffload.runtime.session import undeclare
+from zoffload.runtime.session import has_subscribers, undeclare
 from zoffload.sources import ScanSource, open_scan_source
 
 log = logging.getLogger("zoffload.robot.scans")
@@ -483,6 +483,11 @@ class ScanStreamer:
             # an edge is there: let the first attach finish before the first scan (else it
             # would be registered locally for no reason)
             self.fleet.wait_settled(o.attach_timeout + 0.5)
+        elif self.fleet is None and self.presence is not None and self.presence.any:
+            # without the attach protocol, an edge is there (its liveliness token came) but its
+            # scan subscriber may not be matched yet: a scan published before would reach no one
+            # and be booked lost a second later (once in CI 112)
+            self._wait_matched(o.attach_timeout + 0.5)
         sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
         p0, w0 = time.process_time(), time.monotonic()
         steady: tuple[float, float, int] | None = None  # (process CPU, sensor CPU, scans) once warm
@@ -528,6 +533,16 @@ class ScanStreamer:
                 # compiling, connecting) and the final drain left out
                 self._cpu.update(steady_process_s=p1 - steady[0], steady_sensor_s=s1 - steady[1],
                                  steady_scans=n_read - steady[2])
+
+    def _wait_matched(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for a subscriber to match the scan publisher; whether one did."""
+        deadline = time.monotonic() + timeout
+        while not has_subscribers(self._scan_pub):
+            if time.monotonic() >= deadline or self.stop.is_set():
+                log.warning("no subscriber matched the scans after %.1f s; sending anyway", timeout)
+                return False
+            time.sleep(0.01)
+        return True
 
     def _book_overwrites(self, sensor: SensorThread) -> None:
         """Scans the sensor replaced before the loop took them: produced, dropped at source."""
