@@ -60,6 +60,13 @@ def scans(count: int) -> list[np.ndarray]:
     return [(world - [0.1 * i, 0.0, 1.0]).astype(np.float32) for i in range(count)]
 
 
+def _along_x(x: float) -> np.ndarray:
+    """The sensor's pose after moving ``x`` m along x (``scans``' motion)."""
+    pose = np.eye(4)
+    pose[0, 3] = x
+    return pose
+
+
 @pytest.fixture
 def pool() -> Iterator[MapperPool]:
     p = MapperPool(MapperRecipe(), 1, call_timeout=30.0)
@@ -84,6 +91,32 @@ def test_a_mapper_in_a_process_registers_as_one_in_the_edge_process(pool: Mapper
     assert cp is not None and cp.seq == 5
     assert there.predict_from(9, 5, np.eye(4), np.eye(4)) == here.predict_from(9, 5, np.eye(4), np.eye(4))
     assert there.backfilled_seqs == []
+
+
+def test_a_backfill_and_the_priors_it_moves_count_alike_across_the_process_boundary(pool: MapperPool) -> None:
+    # the robot's poses of a backfill 1 m off this mapper's frame: the handover's correction moves
+    # an estimate said to be in that frame (frame=1), not one said in this mapper's (frame=0); the
+    # edge reads the counts off the mapper (prior_moved_by_attach), so they must cross the pipe
+    here, there = MapperRecipe()(header()), pool(header())
+    pts = scans(14)
+    drift = np.eye(4)
+    drift[1, 3] = 1.0
+    seqs = np.arange(6, 10)
+    robot_poses = np.stack([drift @ _along_x(0.1 * i) for i in seqs])
+    backfill = [(int(i), pts[i]) for i in seqs]
+    for m in (here, there):
+        for seq in range(6):
+            m.register(seq, pts[seq])
+        m.continue_from(None, seqs, robot_poses, backfill, robot_poses)
+        assert m.backfilled == 4 and m.backfill_unused == 0
+        step = _along_x(0.1)
+        assert m.predict_from(12, 11, drift @ _along_x(1.1), step, contest=True, frame=1)
+        assert m.priors_moved == 1
+        assert m.predict_from(12, 11, _along_x(1.1), step, contest=True, frame=0)
+        assert m.priors_moved == 1
+        assert m.register(12, pts[12]).map_points > 0
+    np.testing.assert_allclose(there.trajectory()[1], here.trajectory()[1], atol=1e-6)
+    assert there.backfilled_seqs == list(here.backfilled_seqs) == [6, 7, 8, 9]
 
 
 def test_errors_come_back_as_what_they_were_and_leave_the_mapper(pool: MapperPool) -> None:
