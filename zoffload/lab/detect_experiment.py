@@ -131,8 +131,7 @@ def _settings(exp: DetectExperiment) -> dict[str, Any]:
     """What the run ran with besides link, strategy and images (detect_report's RUN_SETTINGS), the
     settings ``ZOFFLOAD_ROBOT__*`` / ``ZOFFLOAD_EDGE__*`` variables gave the daemons included."""
     return {"edge_model": exp.edge_model, "edge_threads": exp.edge_threads, "local_model": exp.local_model,
-            "extra": json.dumps(exp.extra, sort_keys=True, default=str), "edge_apart": exp.edge_apart,
-            "environment": json.dumps(environment_settings(), sort_keys=True, default=str)}
+            "extra": dict(exp.extra), "edge_apart": exp.edge_apart, "environment": environment_settings()}
 
 
 def detect_row(exp: DetectExperiment, out: Path, source: Any) -> dict[str, Any]:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from zoffload.lab.eval.detect_report import aggregate, table, targets, write_detect_report
+from zoffload.lab.eval.detect_report import aggregate, run_settings, table, targets, write_detect_report
 
 
 def _run(folder: Path, strategy: str, ap: float, trace: str = "detect-capped", quota: float = 0.25,
@@ -140,16 +140,19 @@ def test_settings_from_the_environment_are_recorded_and_make_runs_of_their_own(
 
     monkeypatch.delenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", raising=False)
     plain = de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path)))
-    assert plain["environment"] == "{}"
+    assert plain["environment"] == {}
     monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "false")
     off = de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path)))
-    assert json.loads(off["environment"]) == {"robot": {"perception": {"overflow": False}}}
+    assert off["environment"] == {"robot": {"perception": {"overflow": False}}}  # an object, as a scan run's
     monkeypatch.setenv("ZOFFLOAD_ROBOT__PERCEPTION__OVERFLOW", "0")  # the same setting, said otherwise
     assert de._settings(de.DetectExperiment(trace="none", strategy="dispatch", out=str(tmp_path))) == off
     runs = [dict(json.loads((_run(tmp_path / f"r{i}", "dispatch", 50.0 + i) / "results.json").read_text()),
                  **settings) for i, settings in enumerate((plain, plain, off))]
     rows = aggregate(runs)
     assert sorted(r["n"] for r in rows) == [1, 2]
+    # a run of 2026-12-07 stored them as JSON text: the same run
+    older = dict(runs[2], environment=json.dumps(off["environment"]), extra="{}")
+    assert run_settings(older) == run_settings(runs[2]) and len(aggregate([runs[2], older])) == 1
     text = table(rows, "detect-capped", "0.25 core")
     assert '(environment {"robot": {"perception": {"overflow": false}}})' in text
     ran: list[str] = []

@@ -139,23 +139,38 @@ def row_name(strategy: str) -> str:
 # What a detection run ran with besides its link, strategy and images, and the defaults (the lab's
 # DetectExperiment takes its own from here); runs older than 2026-12-06 do not say and ran these,
 # but for the settings of RAN_BEFORE, which they ran as it says. ``environment``: the settings
-# ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* variables gave the daemons (JSON; recorded since 2026-12-07:
-# an older run shows none, though the overflow-off runs of that day had one, in their own folder)
+# ZOFFLOAD_ROBOT__* / ZOFFLOAD_EDGE__* variables gave the daemons (recorded since 2026-12-07: an
+# older run shows none, though the overflow-off runs of that day had one, in their own folder).
+# ``extra`` and ``environment`` are objects, as in a scan or fleet run's results.json; the runs of
+# 2026-12-06 and 07 stored them as JSON text, read alike.
 RUN_SETTINGS: dict[str, Any] = {"edge_model": "picodet-s", "edge_threads": 1, "local_model": "nanodet-m",
-                                "extra": "{}", "edge_apart": True, "environment": "{}"}
+                                "extra": {}, "edge_apart": True, "environment": {}}
 # a setting added after runs were made, and what a run that does not name it ran with: the edge
 # on the robot's cores (``edge_apart``, the default since 2026-12-06)
 RAN_BEFORE: dict[str, Any] = {"edge_apart": False}
 
 
+def _setting_text(value: Any) -> str:
+    """A run setting as compared and shown: an object (or the JSON text older runs stored) as
+    sorted JSON, anything else as text."""
+    if isinstance(value, str) and value[:1] in "{[":
+        try:
+            value = json.loads(value)
+        except ValueError:
+            return value
+    if isinstance(value, dict | list):
+        return json.dumps(value, sort_keys=True, default=str)
+    return str(value)
+
+
 def run_settings(r: dict[str, Any]) -> tuple[str, ...]:
-    return tuple(str(r.get(k, RAN_BEFORE.get(k, default))) for k, default in RUN_SETTINGS.items())
+    return tuple(_setting_text(r.get(k, RAN_BEFORE.get(k, default))) for k, default in RUN_SETTINGS.items())
 
 
 def settings_note(r: dict[str, Any]) -> str:
     """What a row ran with that is not the defaults ("" for none): named beside it."""
-    diff = [f"{k} {v}" for k, v, d in zip(RUN_SETTINGS, run_settings(r), map(str, RUN_SETTINGS.values()),
-                                          strict=True) if v != d]
+    defaults = map(_setting_text, RUN_SETTINGS.values())
+    diff = [f"{k} {v}" for k, v, d in zip(RUN_SETTINGS, run_settings(r), defaults, strict=True) if v != d]
     return f" ({', '.join(diff)})" if diff else ""
 
 
