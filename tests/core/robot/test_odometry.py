@@ -227,6 +227,52 @@ def test_a_bridge_going_on_with_a_no_edge_periods_odometry_gives_an_older_edge_n
     assert keeper.prior_for(35, reads=10) is None
 
 
+def test_a_bridge_begun_for_a_dead_edge_goes_on_to_the_next_in_the_handed_over_frame(edge_run: tuple) -> None:
+    """edge1's acks are overdue: the robot bridges from edge1's checkpoint, in edge1's frame. edge1
+    dies, the robot attaches to edge2, whose acks are overdue at once: the same period goes on (a
+    bridge of its own). The poses the attach handed over are that period's and edge1's, so its
+    priors are in the handed-over frame: said so (1) to an edge that reads 11, and given unsaid
+    (-1) to an older one, which moves an estimate of a scan before its first live one by the
+    correction it found for the handed-over poses (mapping/mapper.py ``predict_from``): the right
+    frame there too, so it keeps them (the priors of a move off a dead edge, which older edges use
+    since version 5, are the same case)."""
+    import threading
+    import time
+
+    from zoffload.robot.fleet import FleetState
+    from zoffload.robot.ledger import ScanLedger
+    from zoffload.robot.localpose import PoseKeeper
+    from zoffload.robot.sensor import Reading
+
+    src, mapper, cp = edge_run
+    fleet = FleetState("robot1", failover_after=1.0)
+    first = _attach(fleet, "edge1")
+    fleet.checkpoint = cp
+    ledger, lock = ScanLedger(), threading.Lock()
+    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    dead: set[str] = set()
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3,
+                        alive=lambda e: e not in dead)
+    keeper.edge_pose(29, mapper.poses[29])
+    fleet.on_sent(time.monotonic() - 0.5)  # edge1's scan half a second unanswered
+    bridged = keeper.attached(Reading(30, src.read(30), time.time()), first)
+    assert bridged is not None and odo.active and keeper.bridges == 1
+    ledger.handed_off(30, {"capture_stamp": time.time()})
+    keeper.book_bridged(30, *bridged)
+    got = keeper.prior_for(31)
+    assert got is not None and got[2] == (0 if (cp.edge, cp.epoch) == first else 1)
+    dead.add("edge1")
+    fleet.edge_gone("edge1", time.monotonic())
+    second = _attach(fleet, "edge2")
+    fleet.on_sent(time.monotonic() - 0.5)  # edge2's first scan half a second unanswered
+    bridged = keeper.attached(Reading(31, src.read(31), time.time()), second)
+    assert bridged is not None and odo.active and keeper.bridges == 2  # the same period, a new bridge
+    keeper.book_bridged(31, *bridged)
+    new, old = keeper.prior_for(32), keeper.prior_for(32, reads=10)
+    assert new is not None and new[0] == 31 and new[2] == 1
+    assert old is not None and old[0] == 31 and old[2] == -1 and np.array_equal(old[1], new[1])
+
+
 def test_a_period_starts_from_the_newest_poses_the_robot_has_its_own_included(edge_run: tuple) -> None:
     """The robot mapped scans 30-37 itself (no edge), reattached and sent 38-40, and the edge's
     acks are overdue: the bridge starts from its own pose of scan 37, not from the checkpoint of
