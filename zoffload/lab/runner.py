@@ -115,10 +115,15 @@ class StatusWatcher:
 
 
 def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
+    """A scan run's progress from the robot's status values; the voxel of the newest scan sized,
+    "raw" when it went without a grid (the rate policy on a link that carries whole scans), "–"
+    before the first."""
+    voxel = st.get("voxel", 0.0)
+    grid = "–" if not st.get("published") else f"{voxel:.2f} m" if voxel > 0 else "raw"
     return (
         f"[{elapsed:5.1f} s] scans {int(st.get('published', 0))}/{total} sent, "
         f"{int(st.get('acked', 0))} acked, {int(st.get('lost', 0))} lost | "
-        f"voxel {st.get('voxel', 0):.2f} m | T {st.get('last_T', 0):.3f} s | "
+        f"voxel {grid} | T {st.get('last_T', 0):.3f} s | "
         f"CPU {st.get('cpu_ms', float('nan')):.1f} ms | "
         f"RTT {st.get('rtt_ms', float('nan')):.0f} ms | map {int(st.get('map_points', 0)):,} pts"
     )
