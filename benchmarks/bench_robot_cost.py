@@ -169,7 +169,9 @@ def main() -> None:
                     if not steady:
                         print(f"  {key:12}: no steady-state window (fewer than 11 scans read)")
                         continue
-                    mean, sd = statistics.mean(steady), statistics.pstdev(steady)
+                    # the sample sd, as the experiment reports print (0 for a single run)
+                    mean = statistics.mean(steady)
+                    sd = statistics.stdev(steady) if len(steady) > 1 else 0.0
                     print(f"  {key:12}: {mean:6.2f} ± {sd:4.2f} ms per scan = {100 * mean / kiss:5.1f} % of "
                           f"KISS-ICP (runs: {', '.join(f'{x:.2f}' for x in steady)}; whole run with "
                           f"start-up {statistics.mean(whole):.2f} ms)")

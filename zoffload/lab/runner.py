@@ -115,9 +115,9 @@ class StatusWatcher:
 
 
 def progress_line(st: dict[str, float], elapsed: float, total: int) -> str:
-    """A scan run's progress from the robot's status values; the voxel of the newest scan sized,
-    "raw" when it went without a grid (the rate policy on a link that carries whole scans), "–"
-    before the first."""
+    """A scan run's progress from the robot's status values; the robot's current voxel (status
+    ``voxel``: the newest scan's grid, or a skip's), "raw" when 0 (no grid: the rate policy on a
+    link that carries whole scans), "–" before the first scan sent."""
     voxel = st.get("voxel", 0.0)
     grid = "–" if not st.get("published") else f"{voxel:.2f} m" if voxel > 0 else "raw"
     return (

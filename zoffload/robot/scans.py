@@ -486,7 +486,7 @@ class ScanStreamer:
         elif self.fleet is None and self.presence is not None and self.presence.any:
             # without the attach protocol, an edge is there (its liveliness token came) but its
             # scan subscriber may not be matched yet: a scan published before would reach no one
-            # and be booked lost a second later (once in CI 112)
+            # and be booked lost a second later (suspected in a CI 112 flake)
             self._wait_matched(o.attach_timeout + 0.5)
         sensor = self._sensor = SensorThread(self.source, o.rate_hz, o.replay, o.max_scans)
         p0, w0 = time.process_time(), time.monotonic()
@@ -535,10 +535,14 @@ class ScanStreamer:
                                  steady_scans=n_read - steady[2])
 
     def _wait_matched(self, timeout: float) -> bool:
-        """Wait up to ``timeout`` s for a subscriber to match the scan publisher; whether one did."""
+        """Wait up to ``timeout`` s for a subscriber to match the scan publisher; whether one did.
+        Any subscriber to the robot's scans matches (a viewer's too), so this narrows the race
+        rather than closing it; the real edge declares its token after its subscribers."""
         deadline = time.monotonic() + timeout
         while not has_subscribers(self._scan_pub):
-            if time.monotonic() >= deadline or self.stop.is_set():
+            if self.stop.is_set():
+                return False
+            if time.monotonic() >= deadline:
                 log.warning("no subscriber matched the scans after %.1f s; sending anyway", timeout)
                 return False
             time.sleep(0.01)

@@ -232,10 +232,11 @@ def test_a_bridge_begun_for_a_dead_edge_goes_on_to_the_next_in_the_handed_over_f
     dies, the robot attaches to edge2, whose acks are overdue at once: the same period goes on (a
     bridge of its own). The poses the attach handed over are that period's and edge1's, so its
     priors are in the handed-over frame: said so (1) to an edge that reads 11, and given unsaid
-    (-1) to an older one, which moves an estimate of a scan before its first live one by the
-    correction it found for the handed-over poses (mapping/mapper.py ``predict_from``): the right
-    frame there too, so it keeps them (the priors of a move off a dead edge, which older edges use
-    since version 5, are the same case)."""
+    (-1) to an older one, as every bridge's prior has gone since version 5 (the priors of a move
+    off a dead edge are the same case). An edge since 854b98d (the last of version 10) moves such
+    an estimate of a scan before its first live one by the correction it found for the
+    handed-over poses (mapping/mapper.py ``predict_from``: the right frame); an earlier one takes
+    it as sent and contests it with its own guess, as it always did."""
     import threading
     import time
 

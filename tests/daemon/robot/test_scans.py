@@ -247,6 +247,8 @@ def slow_edge(port: int, answer_after: float, edge_time: float,
         yield seen
     finally:
         late.cancel()
+        if subscribe_after > 0:
+            late.join()  # (one firing as the body ends declares before the undeclares below)
         due.put(None)
         worker.join(5)
         for sub in subs:
@@ -332,10 +334,12 @@ def test_a_scan_the_window_holds_back_goes_when_an_ack_frees_a_slot(free_port: i
 
 
 def test_without_attach_the_first_scan_waits_for_the_edges_subscriber(free_port: int) -> None:
-    # the edge's liveliness token is there 0.5 s before its scan subscriber: without the attach
-    # protocol the robot starts on the token, and its first scans reached no one and were booked
-    # lost a second later (a flake in CI 112: 34 of 35 acked); it now waits for the match
-    with slow_edge(free_port, answer_after=0.02, edge_time=0.01, subscribe_after=0.5) as seen:
+    # the edge's liveliness token is there 1 s before its scan subscriber: without the attach
+    # protocol the robot started on the token, and its first scans reached no one and were booked
+    # lost a second later (here 3 lost, and the window they filled dropped the other 7; suspected,
+    # not shown, in CI 112's flake of the held-scan test above: 34 of 35 acked); it now waits for
+    # the match (up to 1.5 s)
+    with slow_edge(free_port, answer_after=0.02, edge_time=0.01, subscribe_after=1.0) as seen:
         robot = run_robot(RobotSettings(zenoh=connect_to(free_port), max_scans=10, rate_hz=10,
                                         scale_policy="fixed", scan_coding="f32",
                                         fleet=RobotFleetSettings(attach=False)))

@@ -153,7 +153,7 @@ RAN_BEFORE: dict[str, Any] = {"edge_apart": False}
 def _setting_text(value: Any) -> str:
     """A run setting as compared and shown: an object (or the JSON text older runs stored) as
     sorted JSON, anything else as text."""
-    if isinstance(value, str) and value[:1] in "{[":
+    if isinstance(value, str) and value.startswith(("{", "[")):
         try:
             value = json.loads(value)
         except ValueError:
