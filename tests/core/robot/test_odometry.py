@@ -237,24 +237,13 @@ def test_a_bridge_begun_for_a_dead_edge_goes_on_to_the_next_in_the_handed_over_f
     an estimate of a scan before its first live one by the correction it found for the
     handed-over poses (mapping/mapper.py ``predict_from``: the right frame); an earlier one takes
     it as sent and contests it with its own guess, as it always did."""
-    import threading
     import time
 
-    from zoffload.robot.fleet import FleetState
-    from zoffload.robot.ledger import ScanLedger
-    from zoffload.robot.localpose import PoseKeeper
     from zoffload.robot.sensor import Reading
 
-    src, mapper, cp = edge_run
-    fleet = FleetState("robot1", failover_after=1.0)
-    first = _attach(fleet, "edge1")
-    fleet.checkpoint = cp
-    ledger, lock = ScanLedger(), threading.Lock()
-    odo = LocalOdometry("robot1", src.max_range, catch_up=10)
+    src, _, cp = edge_run
     dead: set[str] = set()
-    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3,
-                        alive=lambda e: e not in dead)
-    keeper.edge_pose(29, mapper.poses[29])
+    fleet, first, ledger, _, odo, keeper = _attached_keeper(edge_run, alive=lambda e: e not in dead)
     fleet.on_sent(time.monotonic() - 0.5)  # edge1's scan half a second unanswered
     bridged = keeper.attached(Reading(30, src.read(30), time.time()), first)
     assert bridged is not None and odo.active and keeper.bridges == 1
@@ -370,9 +359,10 @@ def _slow_attach_keeper(edge_run: tuple, **keeper_kw: Any) -> tuple:
     return fleet, ledger, lock, odo, keeper
 
 
-def _attached_keeper(edge_run: tuple) -> tuple:
+def _attached_keeper(edge_run: tuple, alive: Any = None) -> tuple:
     """A robot attached to edge1, whose newest checkpoint (after scan 29) and pose of scan 29 it has,
-    with its local odometry and pose keeper: (fleet, attach target, ledger, lock, odometry, keeper)."""
+    with its local odometry and pose keeper (``alive``: whether an edge's token is there; None:
+    all): (fleet, attach target, ledger, lock, odometry, keeper)."""
     import threading
 
     from zoffload.robot.fleet import FleetState
@@ -385,7 +375,8 @@ def _attached_keeper(edge_run: tuple) -> tuple:
     fleet.checkpoint = cp
     ledger, lock = ScanLedger(), threading.Lock()
     odo = LocalOdometry("robot1", src.max_range, catch_up=10)
-    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3)
+    keeper = PoseKeeper(odo, fleet, ledger, lock, period=0.1, failover_after=1.0, bridge_after=0.3,
+                        alive=alive)
     keeper.edge_pose(29, mapper.poses[29])
     return fleet, ask, ledger, lock, odo, keeper
 
