@@ -156,6 +156,12 @@ class FleetState:
             return "kept"
 
     # Scans and acks (the scan pipeline)
+    def none_to_ask(self, now: float) -> bool:
+        """Unassigned, with edges known and none of them to ask now (all full, or refused us)."""
+        with self._lock:
+            a = self.assignment
+            return a.state == UNASSIGNED and bool(a.edges) and a.next_candidate(now) is None
+
     def target(self) -> tuple[str, int] | None:
         """(edge, epoch) to put on the next scan; None while no edge maps the robot."""
         with self._lock:
@@ -494,13 +500,17 @@ class FleetLink:
         self._wake.set()
 
     def wait_settled(self, timeout: float) -> bool:
-        """Block until the robot is attached or no live edge is left to ask (at startup)."""
+        """Block until the robot is attached or no live edge is left to ask (at startup, called once
+        an edge's token came). While the fleet state knows no edge yet, it waits: this link's
+        presence callback runs after the watcher that let the robot start, and "no edge known"
+        read as "none to ask" made the robot map its first scans itself, the attach hand over
+        nothing, and the edge begin its map mid-drive (KITTI-360 ``satellite-heldout``, 0.058 m
+        against 0.026 m locally, 2026-12-07)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.state.target() is not None:
                 return True
-            if self.state.assignment.state == UNASSIGNED and self.state.assignment.next_candidate(
-                    time.monotonic()) is None:
+            if self.state.none_to_ask(time.monotonic()):
                 return False
             time.sleep(0.01)
         return False

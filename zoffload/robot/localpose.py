@@ -186,7 +186,9 @@ class PoseKeeper:
             if odo.active:
                 odo.end()  # an edge answers (again)
                 self._bridging = False
-            odo.hold(reading.seq, reading.frame.points, reading.capture_stamp)
+            with self.lock:  # (the held scans answered since: a catch-up begins after them)
+                posed = max((h.seq for h in odo.ring if h.seq in self.ledger.poses), default=-1)
+            odo.hold(reading.seq, reading.frame.points, reading.capture_stamp, posed)
             return None
         if not odo.active:
             self._begin(reading.seq, "acks overdue")

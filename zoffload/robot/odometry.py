@@ -4,9 +4,9 @@ Coarse (voxel ``max_range / 50`` by default, against the edge's ``/ 100``) and o
 of threads, so it costs the robot a bounded share of its CPU. It continues the edge's trajectory:
 a period of local odometry starts from the freshest checkpoint (the edge's, or this odometry's
 own from the period before) and the newest pose the edge acknowledged after it; scans sent but
-never answered (kept in a small ring) are registered first, so the trajectory has no hole. Every
-``checkpoint_every`` registrations it takes its own checkpoint (edge ""), which the next attach
-hands to the next edge together with the poses estimated since.
+never answered (a small ring spread over them, ``CatchUpRing``) are registered first, so the
+trajectory has no hole. Every ``checkpoint_every`` registrations it takes its own checkpoint
+(edge ""), which the next attach hands to the next edge together with the poses estimated since.
 
 Not thread-safe by itself except where said: the robot's loop thread registers, the fleet thread
 reads ``snapshot()`` (under the lock).
@@ -17,7 +17,9 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -27,6 +29,8 @@ from zoffload.mapping.se3 import as_rigid, se3_power
 from zoffload.mapping.voxel import voxel_downsample
 from zoffload.protocol import wire
 from zoffload.robot.scanlog import Histogram
+
+T = TypeVar("T")
 
 MAX_GAP = 50  # beyond this many scans without a pose, constant velocity means nothing
 MAX_LOCAL_POSES = 10_000  # poses kept for the next attach (16 minutes at 10 Hz)
@@ -75,6 +79,19 @@ class Snapshot:
     backfill: tuple[Backfilled, ...] = ()  # the period's scans, spread over it, ascending
 
 
+def _spread(kept: list[tuple[int, T]], item: tuple[int, T], size: int, stride: int) -> int:
+    """Append ``item`` (its position in a stretch, the thing) to ``kept``, which holds every
+    ``stride``-th position from the stretch's first and the newest: the newest so far, off the
+    stride, is replaced; more than ``size`` kept, the stride doubles. Returns the stride."""
+    if kept and kept[-1][0] % stride:
+        kept.pop()
+    kept.append(item)
+    if len(kept) > size:
+        stride *= 2
+        kept[:] = [(j, x) for j, x in kept if j % stride == 0 or j == item[0]]
+    return stride
+
+
 class BackfillRing:
     """At most ``size`` of a period's registered scans, spread evenly over the whole period: every
     ``stride``-th (the period's first always) and the newest; when more than ``size`` are kept the
@@ -94,12 +111,7 @@ class BackfillRing:
         if not self.size:
             return
         i, self.count = self.count, self.count + 1
-        if self._kept and self._kept[-1][0] % self.stride:  # the newest so far, off the stride: replaced
-            self._kept.pop()
-        self._kept.append((i, scan))
-        if len(self._kept) > self.size:
-            self.stride *= 2
-            self._kept = [(j, b) for j, b in self._kept if j % self.stride == 0 or j == i]
+        self.stride = _spread(self._kept, (i, scan), self.size, self.stride)
 
     def clear(self) -> None:
         self.stride, self.count, self._kept = 1, 0, []
@@ -108,9 +120,47 @@ class BackfillRing:
         return tuple(b for _, b in self._kept)
 
 
+class CatchUpRing:
+    """The scans sent since the newest one the robot has a pose of, at most ``size`` of them spread
+    evenly over that stretch: every ``stride``-th (counted from the stretch's first) and the
+    newest; when more than ``size`` are held the stride doubles. A scan is held by reference (the
+    raw frame, not a copy), and the scans up to the newest posed one are let go, since a period's
+    catch-up begins after it. The newest ``size`` alone left a hole: on a fade acks came 2.6 s
+    late, the period began 21 scans after the newest pose with the newest 10 held, and the
+    odometry stretched the motion of the pose before the hole over the other 11 (KITTI-360
+    ``satellite-heldout``, replayed ping-pong: the robot turned back in the hole, and its poses and
+    the prior it sent were 13 m off). Every other scan of such a stretch (21-30 scans past a turn
+    back) registered, the poses were within 10 cm; every fourth, 16-45 m off (the replay turns back
+    at 10 m/s between two scans; tests/core/robot/test_odometry.py). 20 held keep every other scan
+    of a stretch of up to 40, 4 s at 10 Hz; a KITTI-360 scan is 1.3 MB."""
+
+    def __init__(self, size: int) -> None:
+        self.maxlen = max(0, size)
+        self.stride = 1
+        self._base = 0  # the seq the stride counts from: the stretch's first
+        self._held: list[tuple[int, Held]] = []  # (seq - base, scan)
+
+    def append(self, held: Held, posed_upto: int = -1) -> None:
+        if not self.maxlen:
+            return
+        self._held = [(j, h) for j, h in self._held if h.seq > posed_upto]
+        if not self._held:
+            self.stride, self._base = 1, held.seq
+        self.stride = _spread(self._held, (held.seq - self._base, held), self.maxlen, self.stride)
+
+    def clear(self) -> None:
+        self.stride, self._held = 1, []
+
+    def __iter__(self) -> Iterator[Held]:
+        return iter([h for _, h in self._held])
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+
 class LocalOdometry:
     def __init__(self, robot: str, max_range: float, voxel: float | None = None, threads: int = 1,
-                 catch_up: int = 10, checkpoint_every: int = 10, backfill_scans: int = 0,
+                 catch_up: int = 20, checkpoint_every: int = 10, backfill_scans: int = 0,
                  backfill_voxel: float | None = None) -> None:
         self.robot = robot
         self.max_range = max_range
@@ -124,7 +174,7 @@ class LocalOdometry:
         self._backfill = BackfillRing(backfill_scans)
         self.threads = threads
         self.checkpoint_every = max(1, checkpoint_every)
-        self.ring: deque[Held] = deque(maxlen=max(0, catch_up))
+        self.ring = CatchUpRing(catch_up)
         self.cpu = Histogram()  # thread CPU per registration, ms
         self.registered = 0
         self.caught_up = 0
@@ -139,9 +189,10 @@ class LocalOdometry:
         self.motion = np.eye(4)  # the motion per scan period after the last registration
 
     # The ring (loop thread, while attached)
-    def hold(self, seq: int, points: np.ndarray, stamp: float) -> None:
+    def hold(self, seq: int, points: np.ndarray, stamp: float, posed_upto: int = -1) -> None:
+        """Hold a scan sent; ``posed_upto``: the newest held scan the robot has a pose of."""
         if self.ring.maxlen:
-            self.ring.append(Held(seq, points, stamp))
+            self.ring.append(Held(seq, points, stamp), posed_upto)
 
     # A period of local odometry
     @property

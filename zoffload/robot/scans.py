@@ -98,7 +98,7 @@ class StreamOptions:
     local_odometry: bool = True
     local_voxel: float | None = None
     local_threads: int = 1
-    catch_up: int = 10
+    catch_up: int = 20
     backfill_scans: int = 50  # scans kept for the next attach (robot/odometry.py)
     backfill_voxel: float | None = None  # None: a quarter of the local odometry's voxel
     backfill_bytes: int = BACKFILL_BYTES  # an attach's backfill may take at least ...

@@ -430,8 +430,10 @@ class RobotFleetSettings(_Strict):
     )
     local_threads: int = Field(default=1, ge=1, description="threads of the local odometry's KISS-ICP")
     catch_up: int = Field(
-        default=10, ge=0,
-        description="recent scans kept so the local odometry can register the ones its edge never answered",
+        default=20, ge=0,
+        description="scans sent since the newest answered one that the robot holds (by reference), spread "
+                    "over them when there are more, so the local odometry can register the ones its edge "
+                    "never answered",
     )
     backfill_scans: int = Field(
         default=50, ge=0, le=64,

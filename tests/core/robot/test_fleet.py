@@ -226,6 +226,47 @@ def test_unanswered_or_refused_attaches_back_off() -> None:
     assert m["attaches"] == 0 and m["edge"] == ""
 
 
+def test_the_first_scan_waits_for_the_attach_while_the_fleet_state_knows_no_edge_yet() -> None:
+    """At startup an edge's token let the robot start before the fleet link's own presence
+    callback told its state: "no edge known" then read as "none to ask", the robot mapped its
+    first scans itself and the edge began its map mid-drive. It waits for the edge (bounded), and
+    returns at once only when edges are known and none may take it."""
+    import threading
+    import time
+
+    from zoffload.protocol.keys import Keys
+    from zoffload.robot.fleet import FleetLink
+
+    f = FleetState("r1", failover_after=0.5)
+    link = FleetLink(Keys("zoffload"), f, sensor=None, attach_timeout=1.0)  # type: ignore[arg-type]
+
+    def later() -> None:
+        time.sleep(0.2)
+        f.edge_present("e1")  # the presence callback
+        time.sleep(0.1)
+        attached(f)  # the fleet thread's attach
+
+    t = threading.Thread(target=later)
+    t0 = time.monotonic()
+    t.start()
+    assert link.wait_settled(3.0) and 0.25 < time.monotonic() - t0 < 2.0
+    t.join()
+    t0 = time.monotonic()
+    assert link.wait_settled(3.0) and time.monotonic() - t0 < 0.1  # attached: at once
+    g = FleetState("r1", failover_after=0.5)
+    g.edge_present("e1")
+    now = time.monotonic()
+    ask = g.next_attach(now, int(now * 1000))
+    assert ask is not None and g.attach_result(*ask, reply(*ask, accepted=False), now) != "attached"
+    t0 = time.monotonic()  # the only edge refused us: none to ask, at once
+    assert not FleetLink(Keys("zoffload"), g, None, 1.0).wait_settled(3.0)  # type: ignore[arg-type]
+    assert time.monotonic() - t0 < 0.1
+    t0 = time.monotonic()  # no edge known at all: it waits out its timeout
+    lone = FleetLink(Keys("zoffload"), FleetState("r1", failover_after=0.5), None, 1.0)  # type: ignore[arg-type]
+    assert not lone.wait_settled(0.3)
+    assert time.monotonic() - t0 >= 0.3
+
+
 def test_a_silent_edge_is_kept_while_no_other_edge_could_take_the_robot() -> None:
     f = FleetState("r1", failover_after=0.5)
     f.edge_present("e1")

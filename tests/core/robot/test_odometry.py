@@ -56,19 +56,20 @@ def test_seeded_local_odometry_continues_the_trajectory(edge_run: tuple) -> None
 def test_unanswered_scans_are_caught_up_and_the_snapshot_carries_the_rest(edge_run: tuple) -> None:
     src, mapper, cp = edge_run
     odo = LocalOdometry("robot1", src.max_range, catch_up=4, checkpoint_every=10)
-    for i in range(28, 36):  # sent while attached; only 28 and 29 got an answer
-        odo.hold(i, src.read(i).points, i / 10)
-    assert len(odo.ring) == 4  # bounded: 32..35
+    for i in range(28, 36):  # sent while attached; only 28 and 29 got an answer, by the time 30 went
+        odo.hold(i, src.read(i).points, i / 10, posed_upto=29 if i >= 30 else -1)
+    # bounded, spread over the scans after the newest answered one: 30..35 every other and the newest
+    assert [h.seq for h in odo.ring] == [30, 32, 34, 35]
     odo.begin(cp, [(29, mapper.poses[29])])
-    done = odo.catch_up(before=36, posed={33})
-    assert [s for s, _, _ in done] == [32, 34, 35] and not odo.ring
+    done = odo.catch_up(before=36, posed={34})
+    assert [s for s, _, _ in done] == [30, 32, 35] and not odo.ring
     for i in range(36, 48):
         pose, _ = odo.register(i, src.read(i).points, i / 10)
     assert np.linalg.norm(pose[:3, 3] - mapper.poses[47][:3, 3]) < 0.5
     snap = odo.snapshot()
     assert snap.checkpoint is not None and snap.checkpoint.edge == "" and snap.checkpoint.robot == "robot1"
-    # the period's first registration took one, then every 10th registration: 32, then 43
-    assert snap.checkpoint.seq == 43 and list(snap.seqs) == [32, *range(34, 48)]
+    # the period's first registration took one, then every 10th registration: 30, then 43
+    assert snap.checkpoint.seq == 43 and list(snap.seqs) == [30, 32, *range(35, 48)]
     assert snap.poses.shape == (15, 4, 4)
     wire.decode(wire.encode(snap.checkpoint), expect=wire.Checkpoint)  # a valid message
     # the edge's turn rate (version 8) carries on in the robot's own checkpoints, for the next edge
@@ -422,6 +423,76 @@ def test_the_period_keeps_its_scans_at_the_backfills_grid_for_the_next_attach(ed
     off.begin(cp, [])
     off.register(30, src.read(30).points, 3.0)
     assert off.snapshot().backfill == ()
+
+
+def test_the_catch_up_ring_spreads_over_the_scans_since_the_newest_answered_one() -> None:
+    """Scans sent and not answered, more than the ring holds: the first after the newest answered
+    one, the newest, and every stride-th between (a gap at most twice the even spread); those up
+    to a scan answered since are let go, and once none is left the stride starts again at 1."""
+    from zoffload.robot.odometry import CatchUpRing, Held
+
+    ring = CatchUpRing(10)
+    for seq in range(100, 140):  # 99 answered, then nothing
+        ring.append(Held(seq, np.zeros((1, 3)), 0.0), posed_upto=99)
+        held = [h.seq for h in ring]
+        assert held[0] == 100 and held[-1] == seq and len(held) <= 10 and held == sorted(held)
+    assert np.diff(held).max() <= 2 * 40 / 10 and len(ring) >= 5, held
+    ring.append(Held(140, np.zeros((1, 3)), 0.0), posed_upto=120)  # 120's answer came
+    assert [h.seq for h in ring][0] > 120 and [h.seq for h in ring][-1] == 140
+    ring.append(Held(141, np.zeros((1, 3)), 0.0), posed_upto=140)
+    assert [h.seq for h in ring] == [141] and ring.stride == 1
+    off = CatchUpRing(0)
+    off.append(Held(1, np.zeros((1, 3)), 0.0))
+    assert len(off) == 0
+
+
+def test_a_hole_before_the_odometry_begins_is_caught_up_across_a_turn_back(kitti_dir) -> None:
+    """KITTI-360 replayed ping-pong (at 10 m/s the replay turns back between two scans): a fade
+    held the acks back, so the robot's newest poses were two scans before the turn and its local
+    odometry began 21 scans after them (``satellite-heldout``, 2026-12-07). Holding only the
+    newest 10 left 11 scans with no pose across the turn, the motion before it was stretched over
+    them, and the robot's poses, and the prior it sent, were 13 m off; the ring spread over the
+    whole stretch registers every other scan and stays within centimetres."""
+    from itertools import islice
+
+    from zoffload.mapping.cloud import drop_non_finite
+    from zoffload.mapping.mapper import mapper_voxel_size
+    from zoffload.robot.odometry import Held
+    from zoffload.sources.base import open_scan_source, replay_order
+
+    src = open_scan_source(str(kitti_dir))
+    n = len(src)
+    order = list(islice(replay_order(n, "pingpong"), n + 16))  # turns back at seq n - 1
+
+    def points(seq: int) -> np.ndarray:
+        return drop_non_finite(src.read(order[seq]).points)[0]
+
+    edge = RobotMapper(voxel_size=mapper_voxel_size(src.max_range, 0.5), max_range=src.max_range)
+    last = n - 6  # the robot's newest pose, five scans before the turn; the hole 21 scans after it
+    for seq in range(n + 16):  # (carried on: the reference)
+        edge.register(seq, points(seq))
+        if seq == last:
+            cp = take_checkpoint(edge.odometry, "robot1", "edge1", 1, seq, 0.0)
+    held = range(last + 1, n + 16)
+
+    def caught_up(ring: list[int] | None, size: int = 20) -> float:
+        """How far the pose of the newest held scan is from the edge's."""
+        odo = LocalOdometry("robot1", src.max_range, catch_up=size)
+        odo.begin(cp, [(last - 1, edge.poses[last - 1]), (last, edge.poses[last])])
+        if ring is None:
+            for seq in held:
+                odo.hold(seq, points(seq), 0.0, posed_upto=last)
+            assert np.diff([last, *(h.seq for h in odo.ring)]).max() <= (2 if size == 20 else 4)
+        else:  # as the ring held them before: the newest ten
+            odo.ring._held = [(i, Held(seq, points(seq), 0.0)) for i, seq in enumerate(ring)]
+        done = odo.catch_up(held[-1] + 1, set())
+        assert done[-1][0] == held[-1]
+        return float(np.linalg.norm(done[-1][1][:3, 3] - edge.poses[held[-1]][:3, 3]))
+
+    assert np.linalg.norm(edge.poses[held[-1]][:3, 3] - edge.poses[last][:3, 3]) > 5  # it drove on
+    assert caught_up(None) < 0.3  # (LocalOdometry's default, 20: every other scan)
+    assert caught_up(None, size=10) > 3  # 10 held: every fourth scan, too far apart at the turn
+    assert caught_up(list(held)[-10:]) > 3  # the newest ten alone
 
 
 def test_the_backfill_ring_spreads_over_an_outage_longer_than_it() -> None:
