@@ -127,12 +127,13 @@ class CatchUpRing:
     raw frame, not a copy), and the scans up to the newest posed one are let go, since a period's
     catch-up begins after it. The newest ``size`` alone left a hole: on a fade acks came 2.6 s
     late, the period began 21 scans after the newest pose with the newest 10 held, and the
-    odometry stretched the motion of the pose before the hole over the other 11 (KITTI-360
+    odometry stretched the motion of the pose before the hole over the 10 it did not hold (KITTI-360
     ``satellite-heldout``, replayed ping-pong: the robot turned back in the hole, and its poses and
     the prior it sent were 13 m off). Every other scan of such a stretch (21-30 scans past a turn
     back) registered, the poses were within 10 cm; every fourth, 16-45 m off (the replay turns back
     at 10 m/s between two scans; tests/core/robot/test_odometry.py). 20 held keep every other scan
-    of a stretch of up to 40, 4 s at 10 Hz; a KITTI-360 scan is 1.3 MB."""
+    of a stretch of up to 39, 3.9 s at 10 Hz; a KITTI-360 scan is 1.3 MB. (The first and the newest
+    are always held: a size of 1 holds 2.)"""
 
     def __init__(self, size: int) -> None:
         self.maxlen = max(0, size)
@@ -143,9 +144,14 @@ class CatchUpRing:
     def append(self, held: Held, posed_upto: int = -1) -> None:
         if not self.maxlen:
             return
-        self._held = [(j, h) for j, h in self._held if h.seq > posed_upto]
-        if not self._held:
-            self.stride, self._base = 1, held.seq
+        keep = [h for _, h in self._held if h.seq > posed_upto]
+        if len(keep) < len(self._held) or not keep:
+            # Some let go: the stretch now begins after the newest posed scan, and the ones left
+            # (thinned already, at most ``size``) are kept as they are, at stride 1 again. Kept
+            # doubled, the stride outlived the hole: on a link slower than a period the ring never
+            # empties, and every other new scan was let go with the ring nearly empty.
+            self.stride, self._base = 1, (posed_upto + 1 if keep else held.seq)
+            self._held = [(h.seq - self._base, h) for h in keep]
         self.stride = _spread(self._held, (held.seq - self._base, held), self.maxlen, self.stride)
 
     def clear(self) -> None:

@@ -482,7 +482,8 @@ class ScanStreamer:
         if self.fleet is not None and self.presence is not None and self.presence.any:
             # an edge is there: let the first attach finish before the first scan (else it
             # would be registered locally for no reason)
-            self.fleet.wait_settled(o.attach_timeout + 0.5)
+            presence = self.presence
+            self.fleet.wait_settled(o.attach_timeout + 0.5, lambda: presence.any)
         elif self.fleet is None and self.presence is not None and self.presence.any:
             # without the attach protocol, an edge is there (its liveliness token came) but its
             # scan subscriber may not be matched yet: a scan published before would reach no one

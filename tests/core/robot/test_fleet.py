@@ -261,10 +261,12 @@ def test_the_first_scan_waits_for_the_attach_while_the_fleet_state_knows_no_edge
     t0 = time.monotonic()  # the only edge refused us: none to ask, at once
     assert not FleetLink(Keys("zoffload"), g, None, 1.0).wait_settled(3.0)  # type: ignore[arg-type]
     assert time.monotonic() - t0 < 0.1
-    t0 = time.monotonic()  # no edge known at all: it waits out its timeout
     lone = FleetLink(Keys("zoffload"), FleetState("r1", failover_after=0.5), None, 1.0)  # type: ignore[arg-type]
-    assert not lone.wait_settled(0.3)
+    t0 = time.monotonic()  # no edge known (its token there, the callback not yet): it waits, bounded
+    assert not lone.wait_settled(0.3, present=lambda: True)
     assert time.monotonic() - t0 >= 0.3
+    t0 = time.monotonic()  # the token that let the robot start went again: no wait
+    assert not lone.wait_settled(3.0, present=lambda: False) and time.monotonic() - t0 < 0.1
 
 
 def test_a_silent_edge_is_kept_while_no_other_edge_could_take_the_robot() -> None:

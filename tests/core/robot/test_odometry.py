@@ -438,9 +438,13 @@ def test_the_catch_up_ring_spreads_over_the_scans_since_the_newest_answered_one(
         assert held[0] == 100 and held[-1] == seq and len(held) <= 10 and held == sorted(held)
     assert np.diff(held).max() <= 2 * 40 / 10 and len(ring) >= 5, held
     ring.append(Held(140, np.zeros((1, 3)), 0.0), posed_upto=120)  # 120's answer came
-    assert [h.seq for h in ring][0] > 120 and [h.seq for h in ring][-1] == 140
-    ring.append(Held(141, np.zeros((1, 3)), 0.0), posed_upto=140)
-    assert [h.seq for h in ring] == [141] and ring.stride == 1
+    left = [h.seq for h in ring]
+    assert left[0] > 120 and left[-1] == 140 and ring.stride == 1  # the stretch begins after 120 now
+    for seq in range(141, 141 + 10 - len(left)):  # room again: every new scan is held
+        ring.append(Held(seq, np.zeros((1, 3)), 0.0), posed_upto=120)
+    assert [h.seq for h in ring] == left + list(range(141, 141 + 10 - len(left)))
+    ring.append(Held(200, np.zeros((1, 3)), 0.0), posed_upto=199)
+    assert [h.seq for h in ring] == [200] and ring.stride == 1
     off = CatchUpRing(0)
     off.append(Held(1, np.zeros((1, 3)), 0.0))
     assert len(off) == 0
@@ -448,16 +452,17 @@ def test_the_catch_up_ring_spreads_over_the_scans_since_the_newest_answered_one(
 
 def test_a_hole_before_the_odometry_begins_is_caught_up_across_a_turn_back(kitti_dir) -> None:
     """KITTI-360 replayed ping-pong (at 10 m/s the replay turns back between two scans): a fade
-    held the acks back, so the robot's newest poses were two scans before the turn and its local
-    odometry began 21 scans after them (``satellite-heldout``, 2026-12-07). Holding only the
-    newest 10 left 11 scans with no pose across the turn, the motion before it was stretched over
-    them, and the robot's poses, and the prior it sent, were 13 m off; the ring spread over the
-    whole stretch registers every other scan and stays within centimetres."""
+    held the acks back, so the robot's newest poses were from before the turn and its local
+    odometry began 21 scans after them (``satellite-heldout``, 2026-12-07: the newest pose 388,
+    the turn at 392, the period begun at 409). Holding only the newest 10 left 10 scans with no
+    pose across the turn, the motion before it was stretched over them, and the robot's poses, and
+    the prior it sent, were 13 m off. Here the newest pose is five scans before the replay's first
+    turn and 21 scans follow: the ring of 20 holds every other one and stays within centimetres; a
+    ring of 10, every fourth, and the newest 10 alone are metres off."""
     from itertools import islice
 
     from zoffload.mapping.cloud import drop_non_finite
     from zoffload.mapping.mapper import mapper_voxel_size
-    from zoffload.robot.odometry import Held
     from zoffload.sources.base import open_scan_source, replay_order
 
     src = open_scan_source(str(kitti_dir))
@@ -484,7 +489,9 @@ def test_a_hole_before_the_odometry_begins_is_caught_up_across_a_turn_back(kitti
                 odo.hold(seq, points(seq), 0.0, posed_upto=last)
             assert np.diff([last, *(h.seq for h in odo.ring)]).max() <= (2 if size == 20 else 4)
         else:  # as the ring held them before: the newest ten
-            odo.ring._held = [(i, Held(seq, points(seq), 0.0)) for i, seq in enumerate(ring)]
+            for seq in ring:
+                odo.hold(seq, points(seq), 0.0, posed_upto=last)
+            assert [h.seq for h in odo.ring] == ring
         done = odo.catch_up(held[-1] + 1, set())
         assert done[-1][0] == held[-1]
         return float(np.linalg.norm(done[-1][1][:3, 3] - edge.poses[held[-1]][:3, 3]))
