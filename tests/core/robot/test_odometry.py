@@ -428,7 +428,8 @@ def test_the_period_keeps_its_scans_at_the_backfills_grid_for_the_next_attach(ed
 def test_the_catch_up_ring_spreads_over_the_scans_since_the_newest_answered_one() -> None:
     """Scans sent and not answered, more than the ring holds: the first after the newest answered
     one, the newest, and every stride-th between (a gap at most twice the even spread); those up
-    to a scan answered since are let go, and once none is left the stride starts again at 1."""
+    to a scan answered since are let go, and the stride starts again at 1 from the scan after it
+    (the ones left are kept as they are, and new ones are all held while there is room)."""
     from zoffload.robot.odometry import CatchUpRing, Held
 
     ring = CatchUpRing(10)
