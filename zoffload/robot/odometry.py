@@ -197,8 +197,7 @@ class LocalOdometry:
     # The ring (loop thread, while attached)
     def hold(self, seq: int, points: np.ndarray, stamp: float, posed_upto: int = -1) -> None:
         """Hold a scan sent; ``posed_upto``: the newest held scan the robot has a pose of."""
-        if self.ring.maxlen:
-            self.ring.append(Held(seq, points, stamp), posed_upto)
+        self.ring.append(Held(seq, points, stamp), posed_upto)  # (a ring of size 0 holds none)
 
     # A period of local odometry
     @property
