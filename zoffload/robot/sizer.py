@@ -154,7 +154,9 @@ class ScanSizer:
         out = Sized(decision.voxel, decision, n_valid=n - grid.n_invalid, n_invalid=grid.n_invalid,
                     n_points=len(grid), coding=self.coding)
         if self.coding == "f32":
-            out.points = grid.centroids(np.float32)
+            m = len(grid)
+            out.buffer = self.pool.take(12 * m)  # given back by the sender after put()
+            out.points = grid.centroids(np.float32, out=out.buffer[:12 * m].view(np.float32).reshape(m, 3))
             mean_t = grid.mean_times()
             if mean_t is not None:  # from the sweep's first point, as the q16 codings do
                 out.times, out.time_span = _times_from(mean_t, grid.box[6], grid.box[7])

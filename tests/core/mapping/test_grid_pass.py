@@ -93,3 +93,38 @@ def test_a_reused_grid_leaves_its_table_empty_whichever_way_it_clears_it() -> No
         assert len(got) == len(ref) and got.counts.sum() == len(pts)
         np.testing.assert_allclose(np.array(sorted(map(tuple, got.centroids()))),
                                    np.array(sorted(map(tuple, ref.values()))), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("id_bits", [30, 31])
+def test_a_slots_fingerprint_only_saves_reads_and_never_merges_voxels(id_bits: int) -> None:
+    # A slot holds the voxel id and, above it, a fingerprint of the key's hash (7 bits by default).
+    # With 1 bit (30) half of the slots passed on a probe share it, so the key is read and compared
+    # for them; with none (31, a scan beyond 2^24 points) for every one. A fingerprint that merged
+    # two voxels, or an id cut short by its bits, would change the result.
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-20, 20, size=(60_000, 3))
+    times = rng.uniform(0.0, 0.1, size=len(pts))
+    base = VoxelGrid().run(pts, 0.05, times=times)
+    narrow = VoxelGrid()
+    narrow.id_bits = id_bits
+    got = narrow.run(pts, 0.05, times=times)
+    assert len(base) > 50_000  # mostly one point a voxel: probes pass many occupied slots
+    np.testing.assert_array_equal(got.counts, base.counts)
+    np.testing.assert_array_equal(got.sums, base.sums)
+    assert base.tsums is not None and got.tsums is not None
+    np.testing.assert_array_equal(got.tsums, base.tsums)
+    ref = reference_grid(pts, 0.05)
+    assert len(got) == len(ref)
+    np.testing.assert_allclose(np.array(sorted(map(tuple, got.centroids()))),
+                               np.array(sorted(map(tuple, ref.values()))), rtol=0, atol=1e-9)
+
+
+def test_rows_wider_than_three_columns_use_the_first_three() -> None:
+    # The keys pass reads the coordinates as one flat array: a row with intensity (x, y, z, i)
+    # must not shift them.
+    rng = np.random.default_rng(4)
+    xyzi = rng.uniform(-5, 5, size=(2000, 4)).astype(np.float32)
+    got = VoxelGrid().run(xyzi, 0.2)
+    want = VoxelGrid().run(np.ascontiguousarray(xyzi[:, :3]), 0.2)
+    np.testing.assert_array_equal(got.sums, want.sums)
+    np.testing.assert_array_equal(got.box, want.box)

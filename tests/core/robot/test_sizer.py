@@ -73,3 +73,20 @@ def test_a_scan_with_no_valid_point_is_empty_and_a_skip_is_passed_on() -> None:
     stalled = LinkView(0.1, 1e6, 3.0, 0.1, acks=1, since_ack=2.0, in_flight=3)
     s = sizer.size(_scan(), None, lambda: stalled)
     assert s.skip and s.decision.cause == "stall" and s.n_points == 0
+
+
+def test_f32_points_are_laid_out_in_a_pooled_buffer_given_back_after_sending() -> None:
+    # The sender gives the buffer back after put(): the next scan's centroids go in the same bytes.
+    raw = _scan()
+    sizer = ScanSizer(FixedScale(0.05), "f32")
+    first = sizer.size(raw, None, lambda: VIEW)
+    assert first.buffer is not None and first.points is not None
+    assert np.shares_memory(first.points, first.buffer)
+    np.testing.assert_array_equal(first.points, voxel_downsample(raw[np.isfinite(raw).all(axis=1)], 0.05)
+                                  .astype(np.float32))
+    sizer.pool.give(first.buffer)
+    second = sizer.size(raw, None, lambda: VIEW)
+    assert second.buffer is first.buffer
+    grid = VoxelGrid().run(raw, 0.05, skip_invalid=True)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        grid.centroids(np.float32, out=np.empty((len(grid), 3), np.float64))
