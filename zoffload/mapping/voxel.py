@@ -13,8 +13,8 @@ table is the pass's one random access), and takes the valid points' bounds on th
 above it: a probe past a slot of another voxel reads that voxel's key (a second random access)
 only when the 7 bits agree, 1 in 128. The table is reset by clearing only the slots used, or the
 whole table when most were, so a coarse grid does not pay for a table sized for the raw scan.
-On the 50 KITTI-360 scans, caches cold, 5 cm: 1.45 ms a pass against 1.82 with keys from the
-(n, 3) rows and bare ids (``benchmarks/bench_voxel.py``). Per-point times, when a scan has them,
+On the 50 KITTI-360 scans, caches cold, 5 cm: 1.41-1.49 ms a pass against 1.71 with keys from
+the (n, 3) rows and bare ids (``benchmarks/bench_voxel.py``, 2026-12-08). Per-point times, when a scan has them,
 are averaged like the coordinates (a centroid's time is the mean of its points' times).
 
 The table's hash is salted per process: ``(key ^ salt) * GOLDEN``. Points may come from the
