@@ -95,28 +95,45 @@ def test_a_reused_grid_leaves_its_table_empty_whichever_way_it_clears_it() -> No
                                    np.array(sorted(map(tuple, ref.values()))), rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("id_bits", [30, 31])
+@pytest.mark.parametrize("id_bits", [16, 30, 31])
 def test_a_slots_fingerprint_only_saves_reads_and_never_merges_voxels(id_bits: int) -> None:
     # A slot holds the voxel id and, above it, a fingerprint of the key's hash (7 bits by default).
     # With 1 bit (30) half of the slots passed on a probe share it, so the key is read and compared
-    # for them; with none (31, a scan beyond 2^24 points) for every one. A fingerprint that merged
-    # two voxels, or an id cut short by its bits, would change the result.
+    # for them; with none (31, a scan beyond 2^24 points) for every one; with 16 id bits the ids
+    # reach the top one (34,000 voxels) and the fingerprint sits right above it. Every voxel is
+    # met again later, out of order, so finding it goes through the probing. A fingerprint that
+    # merged two voxels or missed one, or an id cut short by its bits, would change the result.
     rng = np.random.default_rng(3)
-    pts = rng.uniform(-20, 20, size=(60_000, 3))
+    first = rng.uniform(-20, 20, size=(34_000, 3))
+    pts = np.vstack([first, first[rng.permutation(len(first))[:30_000]] + 0.001])
     times = rng.uniform(0.0, 0.1, size=len(pts))
     base = VoxelGrid().run(pts, 0.05, times=times)
     narrow = VoxelGrid()
     narrow.id_bits = id_bits
     got = narrow.run(pts, 0.05, times=times)
-    assert len(base) > 50_000  # mostly one point a voxel: probes pass many occupied slots
+    assert len(base) > 1 << 15 and (base.counts == 2).sum() > 25_000
     np.testing.assert_array_equal(got.counts, base.counts)
     np.testing.assert_array_equal(got.sums, base.sums)
     assert base.tsums is not None and got.tsums is not None
     np.testing.assert_array_equal(got.tsums, base.tsums)
+    # against the plain definition, voxel by voxel in the order of their first point
     ref = reference_grid(pts, 0.05)
-    assert len(got) == len(ref)
-    np.testing.assert_allclose(np.array(sorted(map(tuple, got.centroids()))),
-                               np.array(sorted(map(tuple, ref.values()))), rtol=0, atol=1e-9)
+    ref_counts = {}
+    for p in pts:
+        k = tuple(int(c) for c in np.floor(p / 0.05))
+        ref_counts[k] = ref_counts.get(k, 0) + 1
+    assert got.counts.tolist() == list(ref_counts.values())
+    np.testing.assert_allclose(got.centroids(), np.array(list(ref.values())), rtol=0, atol=1e-9)
+
+
+def test_an_id_override_too_narrow_for_the_scan_and_rows_of_the_wrong_shape_are_refused() -> None:
+    grid = VoxelGrid()
+    grid.id_bits = 10
+    with pytest.raises(ValueError, match="id bits"):
+        grid.run(np.zeros((2000, 3)), 0.1)
+    for bad in (np.zeros(30), np.zeros((10, 2))):
+        with pytest.raises(ValueError, match="shape"):
+            VoxelGrid().run(bad, 0.1)
 
 
 def test_rows_wider_than_three_columns_use_the_first_three() -> None:
