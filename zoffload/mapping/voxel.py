@@ -324,14 +324,11 @@ class VoxelGrid:
 
     def run(self, points: np.ndarray, voxel_size: float, times: np.ndarray | None = None,
             skip_invalid: bool = False, buffer: int = 0) -> Grid:
-        """One pass over ``points`` ((n, 3) float32 or float64; of wider rows the first three
-        columns, copied). Invalid points
+        """One pass over ``points`` ((n, 3) float32 or float64; as ``check_points`` takes them: of
+        wider rows the first three columns, copied, other types as float64). Invalid points
         (non-finite, off the grid, a non-finite time) are skipped and counted with
         ``skip_invalid``, otherwise the first one raises ``ValueError``."""
-        if not (voxel_size > 0 and np.isfinite(voxel_size)):
-            raise ValueError(f"voxel size must be a positive number, got {voxel_size!r}")
-        if points.ndim != 2 or points.shape[1] < 3:
-            raise ValueError(f"points must be an (N, 3) array, got shape {points.shape}")
+        points = check_points(points, voxel_size)  # the keys pass reads them as one flat array
         n = len(points)
         if self.id_bits and n >= 1 << self.id_bits:
             raise ValueError(f"{n} points need more than {self.id_bits} id bits")
@@ -342,8 +339,6 @@ class VoxelGrid:
         cells, keys, slots, keyof, vslot = self._shared
         sums, tsums, counts = self._results[buffer]
         box = np.empty(8)
-        # the keys pass reads the coordinates as one flat array
-        points = np.ascontiguousarray(points if points.shape[1] == 3 else points[:, :3])
         nv, bad, first, t_ref = _grid_pass(points, t, float(voxel_size), self.salt, skip_invalid,
                                            self.id_bits or _id_bits(n), cells, keys, slots, keyof, vslot,
                                            sums, tsums, counts, box)
